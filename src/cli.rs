@@ -1,0 +1,73 @@
+//! The command line. Errors surface as one line on stderr and exit code 2.
+
+use crate::compile::{compile, CompileRequest};
+use crate::pipeline::PassContext;
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+
+#[derive(Parser)]
+#[command(name = "pdi-compile", version, about = "Compile PDI-Net ONNX models for RK3588 NPUs and tract")]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand)]
+pub enum Command {
+    /// Show inputs, outputs, costs split by reconstruction/detection, the PALS-Bridge and the head.
+    Inspect {
+        model: PathBuf,
+        /// Machine-readable report (fields documented in README.md).
+        #[arg(long)]
+        json: bool,
+    },
+    /// Run a pass pipeline and write DIR/model.onnx, DIR/report.json and DIR/manifest.yaml.
+    Compile {
+        model: PathBuf,
+        /// Pipeline recipe (YAML), e.g. passes/identity.yaml.
+        #[arg(long)]
+        pipeline: PathBuf,
+        /// Output folder (created if missing).
+        #[arg(short = 'o', long = "out")]
+        out: PathBuf,
+        /// Camera blur map (.npy or YAML) for passes that bind the PSF.
+        #[arg(long)]
+        psf: Option<PathBuf>,
+        /// Print the report as JSON instead of a summary.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+pub fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Inspect { model, json } => {
+            let loaded = crate::onnx::load(&model)?;
+            let mut report = crate::inspect::inspect(&loaded.model)?;
+            report.warnings.splice(0..0, loaded.warnings);
+            if json {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            } else {
+                print!("{}", report.render());
+            }
+        }
+        Command::Compile { model, pipeline, out, psf, json } => {
+            let req = CompileRequest { model, pipeline, out_dir: out, context: PassContext { psf, calib: None } };
+            let r = compile(&req)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r)?);
+            } else {
+                println!("compiled {} with pipeline '{}' in {:.0} ms -> {}", r.input, r.pipeline.name, r.millis, r.output);
+                println!("  nodes {} -> {}, params {} -> {}, MACs {} -> {}", r.before.nodes, r.after.nodes, r.before.params, r.after.params, r.before.macs, r.after.macs);
+                for p in &r.passes {
+                    println!("  {:<16} {:>8.1} ms  nodes {} -> {}", p.pass, p.millis, p.before.nodes, p.after.nodes);
+                }
+                for w in &r.warnings {
+                    println!("  warning: {w}");
+                }
+            }
+        }
+    }
+    Ok(())
+}

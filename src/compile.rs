@@ -1,0 +1,98 @@
+//! `pdi-compile compile`: load, run a pipeline, write a self-describing output folder.
+//!
+//! DIR/model.onnx      the compiled model (one self-contained file)
+//! DIR/report.json     per-pass reports and before/after counts
+//! DIR/manifest.yaml   input hash, pipeline, tool version: what made this folder
+//! Every file is written to a temp name and renamed, so a failed compile leaves no half file.
+
+use crate::fsutil::{ensure_dir, write_atomic};
+use crate::onnx;
+use crate::pipeline::{self, PassContext, PassReport, Recipe};
+use anyhow::Result;
+use serde::Serialize;
+use sha2::{Digest, Sha256};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+pub struct CompileRequest {
+    pub model: PathBuf,
+    pub pipeline: PathBuf,
+    pub out_dir: PathBuf,
+    pub context: PassContext,
+}
+
+#[derive(Serialize)]
+pub struct CompileReport {
+    pub tool_version: &'static str,
+    pub input: String,
+    pub input_sha256: String,
+    pub pipeline: Recipe,
+    pub pipeline_file: String,
+    pub before: pipeline::Counts,
+    pub after: pipeline::Counts,
+    pub passes: Vec<PassReport>,
+    pub warnings: Vec<String>,
+    pub millis: f64,
+    pub output: String,
+}
+
+pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
+    let t = Instant::now();
+    let recipe = Recipe::load(&req.pipeline)?;
+    let bytes = std::fs::read(&req.model).map_err(|e| anyhow::anyhow!("cannot read {}: {e}", req.model.display()))?;
+    let loaded = onnx::load_bytes(&bytes, req.model.parent().or(Some(Path::new("."))))
+        .map_err(|e| anyhow::anyhow!("{}: {e:#}", req.model.display()))?;
+    let mut model = loaded.model;
+    let before = pipeline::counts(&model)?;
+    let passes = pipeline::run(&recipe, &mut model, &req.context)?;
+    let after = pipeline::counts(&model)?;
+
+    ensure_dir(&req.out_dir)?;
+    let out_model = req.out_dir.join("model.onnx");
+    onnx::save(&model, &out_model)?;
+    let report = CompileReport {
+        tool_version: env!("CARGO_PKG_VERSION"),
+        input: req.model.display().to_string(),
+        input_sha256: hex(&Sha256::digest(&bytes)),
+        pipeline: recipe,
+        pipeline_file: req.pipeline.display().to_string(),
+        before,
+        after,
+        passes,
+        warnings: loaded.warnings,
+        millis: t.elapsed().as_secs_f64() * 1e3,
+        output: out_model.display().to_string(),
+    };
+    write_atomic(&req.out_dir.join("report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    write_atomic(&req.out_dir.join("manifest.yaml"), manifest(&report, &out_model)?.as_bytes())?;
+    Ok(report)
+}
+
+fn manifest(r: &CompileReport, model: &Path) -> Result<String> {
+    #[derive(Serialize)]
+    struct Manifest<'a> {
+        tool: &'static str,
+        tool_version: &'a str,
+        input: &'a str,
+        input_sha256: &'a str,
+        model: &'static str,
+        model_sha256: String,
+        pipeline: &'a Recipe,
+        passes: Vec<&'a str>,
+    }
+    let m = Manifest {
+        tool: "pdi-compile",
+        tool_version: r.tool_version,
+        input: &r.input,
+        input_sha256: &r.input_sha256,
+        model: "model.onnx",
+        model_sha256: hex(&Sha256::digest(std::fs::read(model)?)),
+        pipeline: &r.pipeline,
+        passes: r.passes.iter().map(|p| p.pass.as_str()).collect(),
+    };
+    Ok(yaml_serde::to_string(&m)?)
+}
+
+fn hex(b: &[u8]) -> String {
+    b.iter().map(|x| format!("{x:02x}")).collect()
+}

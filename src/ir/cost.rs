@@ -1,0 +1,56 @@
+//! Parameters and multiply-accumulates per node, from inferred shapes.
+//!
+//! MACs count the multiply-adds of Conv, ConvTranspose, Gemm and MatMul only: element-wise
+//! ops are memory-bound and are not what "GFLOPs" in detector papers counts.
+
+use super::{graph::Graph, shapes::Inferred};
+use crate::onnx::attr;
+use crate::onnx::proto::NodeProto;
+use crate::tensor::DType;
+
+/// Multiply-accumulates of one node (0 for ops that do none or whose shapes are unknown).
+pub fn macs(node: &NodeProto, inf: &Inferred) -> u64 {
+    let shape = |i: usize| node.input.get(i).and_then(|n| inf.shape(n));
+    let out = node.output.first().and_then(|n| inf.shape(n));
+    let prod = |s: &[usize]| s.iter().map(|&d| d as u64).product::<u64>();
+    match node.op_type.as_str() {
+        "Conv" | "ConvInteger" | "QLinearConv" => {
+            let w = if node.op_type == "QLinearConv" { shape(3) } else { shape(1) };
+            match (out, w) {
+                // out elements x (Cin/group x kernel area) = out x prod(W[1..])
+                (Some(o), Some(w)) if !w.is_empty() => prod(&o) * prod(&w[1..]),
+                _ => 0,
+            }
+        }
+        "ConvTranspose" => match (shape(0), shape(1)) {
+            // every input element scatters into Cout/group x kernel area outputs
+            (Some(x), Some(w)) if w.len() > 1 => prod(&x) * prod(&w[1..]),
+            _ => 0,
+        },
+        "Gemm" => match (out, shape(0)) {
+            (Some(o), Some(a)) if a.len() == 2 => {
+                let k = if attr::int(node, "transA", 0) != 0 { a[0] } else { a[1] };
+                prod(&o) * k as u64
+            }
+            _ => 0,
+        },
+        "MatMul" | "MatMulInteger" => match (out, shape(0)) {
+            (Some(o), Some(a)) if !a.is_empty() => prod(&o) * *a.last().unwrap() as u64,
+            _ => 0,
+        },
+        _ => 0,
+    }
+}
+
+/// Learnable-looking parameters read by `node`: float initializers (weights, biases, BN stats)
+/// and int8/uint8 quantized weights. Other integer initializers are shape arguments.
+pub fn params_of<'g>(node: &'g NodeProto, g: &Graph<'g>) -> Vec<(&'g str, u64)> {
+    node.input
+        .iter()
+        .filter_map(|n| {
+            let t = g.initializers.get(n.as_str())?;
+            let counts = DType::from_onnx(t.data_type).is_some_and(|d| d.is_float() || matches!(d, DType::I8 | DType::U8));
+            counts.then(|| (n.as_str(), t.dims.iter().map(|&d| d.max(0) as u64).product::<u64>()))
+        })
+        .collect()
+}

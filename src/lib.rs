@@ -1,0 +1,16 @@
+//! pdi-compile: a model compiler and deployment toolchain for PDI-Net.
+//!
+//! Module map: `onnx` (schema, I/O), `ir` (graph index, shapes, costs), `analysis`
+//! (recognizing PDI-Net's parts), `pipeline` (passes and recipes), `runtime` (ONNX Runtime
+//! and tract behind one interface), `inspect` and `compile` (the commands), `cli`.
+
+pub mod analysis;
+pub mod cli;
+pub mod compile;
+pub mod fsutil;
+pub mod inspect;
+pub mod ir;
+pub mod onnx;
+pub mod pipeline;
+pub mod runtime;
+pub mod tensor;

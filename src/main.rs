@@ -1,0 +1,23 @@
+use clap::Parser;
+use std::process::ExitCode;
+
+/// Exit code for bad input and failures; 1 is reserved for "ran fine, gate failed".
+const EXIT_ERROR: u8 = 2;
+
+fn main() -> ExitCode {
+    let cli = pdi_compile::cli::Cli::parse();
+    // A panic is a bug, but the user still gets one line and exit 2, not a backtrace.
+    std::panic::set_hook(Box::new(|_| {}));
+    match std::panic::catch_unwind(|| pdi_compile::cli::run(cli)) {
+        Ok(Ok(())) => ExitCode::SUCCESS,
+        Ok(Err(e)) => {
+            eprintln!("error: {}", format!("{e:#}").replace('\n', " "));
+            ExitCode::from(EXIT_ERROR)
+        }
+        Err(p) => {
+            let msg = p.downcast_ref::<String>().cloned().or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string())).unwrap_or_default();
+            eprintln!("error: internal error ({msg}); please report it with the input that caused it");
+            ExitCode::from(EXIT_ERROR)
+        }
+    }
+}

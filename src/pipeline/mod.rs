@@ -1,0 +1,76 @@
+//! Pass pipelines: YAML recipes naming passes and their options, run in order.
+//!
+//! A pass is a unit with a contract: it takes a model, rewrites it, and reports what it did
+//! (`serde_json::Value`, pass-specific). The runner adds what every pass report carries:
+//! time taken and node/parameter/MAC counts before and after.
+
+pub mod recipe;
+
+use crate::inspect::inspect;
+use crate::onnx::proto::ModelProto;
+use anyhow::{bail, Context, Result};
+use serde::Serialize;
+use std::path::PathBuf;
+use std::time::Instant;
+
+pub use recipe::{PassSpec, Recipe};
+
+/// What passes may need from the command line.
+#[derive(Default, Clone, Debug)]
+pub struct PassContext {
+    /// Camera blur map (`--psf`).
+    pub psf: Option<PathBuf>,
+    /// Calibration frames (`--calib`).
+    pub calib: Option<PathBuf>,
+}
+
+pub trait Pass {
+    fn name(&self) -> &'static str;
+    /// Rewrites `model`; returns the pass's own report.
+    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value>;
+}
+
+/// Every pass this build knows, by the name recipes use.
+pub const KNOWN_PASSES: &[&str] = &[];
+
+pub fn build_pass(spec: &PassSpec) -> Result<Box<dyn Pass>> {
+    let known = if KNOWN_PASSES.is_empty() { "none yet".to_string() } else { KNOWN_PASSES.join(", ") };
+    bail!("unknown pass '{}' in the pipeline (known passes: {known})", spec.name)
+}
+
+#[derive(Serialize, Clone, Copy)]
+pub struct Counts {
+    pub nodes: usize,
+    pub params: u64,
+    pub macs: u64,
+}
+
+pub fn counts(model: &ModelProto) -> Result<Counts> {
+    let r = inspect(model)?;
+    Ok(Counts { nodes: r.nodes, params: r.params.total, macs: r.macs.total })
+}
+
+#[derive(Serialize)]
+pub struct PassReport {
+    pub pass: String,
+    pub millis: f64,
+    pub before: Counts,
+    pub after: Counts,
+    pub details: serde_json::Value,
+}
+
+/// Runs every pass of `recipe` on `model` in order.
+pub fn run(recipe: &Recipe, model: &mut ModelProto, cx: &PassContext) -> Result<Vec<PassReport>> {
+    let passes: Vec<(Box<dyn Pass>, &PassSpec)> = recipe.passes.iter().map(|s| Ok((build_pass(s)?, s))).collect::<Result<_>>()?;
+    let mut reports = Vec::new();
+    let mut before = counts(model)?;
+    for (pass, spec) in passes {
+        let t = Instant::now();
+        let details = pass.run(model, cx).with_context(|| format!("pass {}", spec.name))?;
+        let millis = t.elapsed().as_secs_f64() * 1e3;
+        let after = counts(model).with_context(|| format!("after pass {}", spec.name))?;
+        reports.push(PassReport { pass: pass.name().to_string(), millis, before, after, details });
+        before = after;
+    }
+    Ok(reports)
+}

@@ -1,0 +1,78 @@
+//! The YAML form of a pipeline.
+//!
+//! ```yaml
+//! name: detect-f32
+//! description: what it is for
+//! passes:
+//!   - strip-recon                 # a pass with default options
+//!   - prune: {ratio: 0.5}         # a pass with options
+//! ```
+
+use anyhow::{anyhow, bail, Context, Result};
+use serde::Serialize;
+use std::path::Path;
+
+#[derive(Debug, Clone, Serialize)]
+pub struct PassSpec {
+    pub name: String,
+    pub options: yaml_serde::Value,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Recipe {
+    pub name: String,
+    pub description: String,
+    pub passes: Vec<PassSpec>,
+}
+
+impl Recipe {
+    pub fn load(path: &Path) -> Result<Recipe> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read pipeline {}", path.display()))?;
+        Recipe::parse(&text).with_context(|| format!("pipeline {}", path.display()))
+    }
+
+    pub fn parse(text: &str) -> Result<Recipe> {
+        let doc: yaml_serde::Value = yaml_serde::from_str(text).map_err(|e| anyhow!("not valid YAML: {e}"))?;
+        let map = doc.as_mapping().ok_or_else(|| anyhow!("expected a mapping with `name` and `passes`"))?;
+        let text_field = |k: &str| map.get(k).and_then(|v| v.as_str()).unwrap_or_default().to_string();
+        for key in map.keys() {
+            let k = key.as_str().unwrap_or_default();
+            if !["name", "description", "passes"].contains(&k) {
+                bail!("unknown key '{k}' (expected name, description, passes)");
+            }
+        }
+        let passes = match map.get("passes") {
+            None | Some(yaml_serde::Value::Null) => Vec::new(),
+            Some(yaml_serde::Value::Sequence(items)) => items.iter().map(pass_spec).collect::<Result<_>>()?,
+            Some(_) => bail!("`passes` must be a list"),
+        };
+        Ok(Recipe { name: text_field("name"), description: text_field("description"), passes })
+    }
+}
+
+fn pass_spec(item: &yaml_serde::Value) -> Result<PassSpec> {
+    match item {
+        yaml_serde::Value::String(s) => Ok(PassSpec { name: s.clone(), options: yaml_serde::Value::Null }),
+        yaml_serde::Value::Mapping(m) if m.len() == 1 => {
+            let (k, v) = m.iter().next().expect("one entry");
+            let name = k.as_str().ok_or_else(|| anyhow!("a pass name must be a string"))?;
+            Ok(PassSpec { name: name.to_string(), options: v.clone() })
+        }
+        _ => bail!("each pass must be a name or `name: {{options}}`"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_both_pass_forms() {
+        let r = Recipe::parse("name: x\npasses:\n  - dce\n  - prune: {ratio: 0.5}\n").unwrap();
+        assert_eq!(r.passes.len(), 2);
+        assert_eq!(r.passes[1].name, "prune");
+        assert_eq!(r.passes[1].options.get("ratio").and_then(|v| v.as_f64()), Some(0.5));
+        assert!(Recipe::parse("name: x\npases: []\n").is_err());
+        assert!(Recipe::parse("passes: 3\n").is_err());
+    }
+}

@@ -1,0 +1,120 @@
+//! ONNX Runtime (the reference) through the `ort` crate.
+
+use super::{NamedTensors, Runtime};
+use crate::onnx::proto::ModelProto;
+use crate::tensor::{Tensor, TensorData};
+use anyhow::{anyhow, bail, Context, Result};
+use ort::session::{builder::GraphOptimizationLevel, Session};
+use ort::value::{DynValue, Tensor as OrtTensor, TensorElementType, ValueType};
+use prost::Message;
+
+pub struct OrtRuntime {
+    session: Session,
+}
+
+impl OrtRuntime {
+    pub fn new(model: &ModelProto) -> Result<OrtRuntime> {
+        Self::with_options(model, GraphOptimizationLevel::Level3, 1)
+    }
+
+    pub fn with_options(model: &ModelProto, level: GraphOptimizationLevel, threads: usize) -> Result<OrtRuntime> {
+        let env = super::ort_lib::environment()?;
+        let bytes = model.encode_to_vec();
+        let session = Session::builder(env)
+            .and_then(|b| b.with_optimization_level(level).map_err(Into::into))
+            .and_then(|b| b.with_intra_threads(threads).map_err(Into::into))
+            .and_then(|mut b| b.commit_from_memory(&bytes))
+            .map_err(|e| anyhow!("ONNX Runtime rejected the model: {e}"))?;
+        Ok(OrtRuntime { session })
+    }
+
+    pub fn output_names(&self) -> Vec<String> {
+        self.session.outputs().iter().map(|o| o.name().to_string()).collect()
+    }
+}
+
+impl Runtime for OrtRuntime {
+    fn name(&self) -> &'static str {
+        "ort"
+    }
+
+    fn run(&mut self, inputs: &[(String, Tensor)]) -> Result<NamedTensors> {
+        let mut values: Vec<(String, DynValue)> = Vec::with_capacity(inputs.len());
+        for (name, t) in inputs {
+            values.push((name.clone(), to_ort(t).with_context(|| format!("input {name}"))?));
+        }
+        let names = self.output_names();
+        let outputs = self.session.run(values).map_err(|e| anyhow!("ONNX Runtime failed: {e}"))?;
+        names
+            .into_iter()
+            .map(|n| {
+                let v = outputs.get(&n).ok_or_else(|| anyhow!("ONNX Runtime returned no output {n}"))?;
+                let t = from_ort(v).with_context(|| format!("output {n}"))?;
+                Ok((n, t))
+            })
+            .collect()
+    }
+}
+
+fn to_ort(t: &Tensor) -> Result<DynValue> {
+    let shape: Vec<i64> = t.shape.iter().map(|&d| d as i64).collect();
+    macro_rules! prim {
+        ($v:expr) => {
+            OrtTensor::from_array((shape.clone(), $v.clone())).map(|x| x.into_dyn())
+        };
+    }
+    let v = match &t.data {
+        TensorData::F32(v) => prim!(v),
+        TensorData::F64(v) => prim!(v),
+        TensorData::F16(v) => prim!(v),
+        TensorData::Bf16(v) => prim!(v),
+        TensorData::I8(v) => prim!(v),
+        TensorData::I16(v) => prim!(v),
+        TensorData::I32(v) => prim!(v),
+        TensorData::I64(v) => prim!(v),
+        TensorData::U8(v) => prim!(v),
+        TensorData::U16(v) => prim!(v),
+        TensorData::U32(v) => prim!(v),
+        TensorData::U64(v) => prim!(v),
+        TensorData::Bool(v) => prim!(v),
+        TensorData::Str(v) => OrtTensor::from_string_array((shape.clone(), v.as_slice())).map(|x| x.into_dyn()),
+    };
+    v.map_err(|e| anyhow!("cannot build an ONNX Runtime tensor: {e}"))
+}
+
+fn from_ort(v: &DynValue) -> Result<Tensor> {
+    let ty = match v.dtype() {
+        ValueType::Tensor { ty, .. } => *ty,
+        other => bail!("non-tensor value ({other:?}) is not supported"),
+    };
+    macro_rules! prim {
+        ($t:ty, $variant:ident) => {{
+            let (shape, data) = v.try_extract_tensor::<$t>().map_err(|e| anyhow!("{e}"))?;
+            Tensor::new(dims(shape), TensorData::$variant(data.to_vec()))
+        }};
+    }
+    Ok(match ty {
+        TensorElementType::Float32 => prim!(f32, F32),
+        TensorElementType::Float64 => prim!(f64, F64),
+        TensorElementType::Float16 => prim!(half::f16, F16),
+        TensorElementType::Bfloat16 => prim!(half::bf16, Bf16),
+        TensorElementType::Int8 => prim!(i8, I8),
+        TensorElementType::Int16 => prim!(i16, I16),
+        TensorElementType::Int32 => prim!(i32, I32),
+        TensorElementType::Int64 => prim!(i64, I64),
+        TensorElementType::Uint8 => prim!(u8, U8),
+        TensorElementType::Uint16 => prim!(u16, U16),
+        TensorElementType::Uint32 => prim!(u32, U32),
+        TensorElementType::Uint64 => prim!(u64, U64),
+        TensorElementType::Bool => prim!(bool, Bool),
+        TensorElementType::String => {
+            let (shape, data) = v.try_extract_strings().map_err(|e| anyhow!("{e}"))?;
+            Tensor::new(dims(shape), TensorData::Str(data))
+        }
+        other => bail!("element type {other:?} is not supported"),
+    })
+}
+
+fn dims(shape: &ort::value::Shape) -> Vec<usize> {
+    shape.iter().map(|&d| d.max(0) as usize).collect()
+}
