@@ -1,0 +1,76 @@
+//! Shared test helpers: fixtures, deterministic inputs, running the CLI.
+#![allow(dead_code)]
+
+use pdi_compile::onnx::proto::ModelProto;
+use pdi_compile::tensor::{DType, Tensor, TensorData};
+use std::path::{Path, PathBuf};
+
+pub fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// Every committed fixture; fails (never skips) if there are none.
+pub fn fixtures() -> Vec<PathBuf> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(repo().join("models/fixtures"))
+        .expect("models/fixtures exists")
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "onnx"))
+        .collect();
+    v.sort();
+    assert!(v.len() >= 16, "expected the 16 committed fixtures, found {}", v.len());
+    v
+}
+
+/// A small deterministic generator (no external crates needed for test data).
+pub struct Lcg(pub u64);
+impl Lcg {
+    pub fn next_f32(&mut self) -> f32 {
+        self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((self.0 >> 40) as f32) / ((1u64 << 24) as f32)
+    }
+}
+
+/// Inputs for a model's graph inputs: image-like values in [0, 1); a blur map in [0, 1].
+pub fn inputs_for(model: &ModelProto, seed: u64) -> Vec<(String, Tensor)> {
+    let g = model.graph.as_ref().unwrap();
+    let inits: Vec<&str> = g.initializer.iter().map(|t| t.name.as_str()).collect();
+    let mut rng = Lcg(seed);
+    g.input
+        .iter()
+        .filter(|v| !inits.contains(&v.name.as_str()))
+        .map(|v| {
+            let t = pdi_compile::ir::shapes::declared(v);
+            assert_eq!(t.dtype, Some(DType::F32), "fixture inputs are float");
+            let shape = t.static_shape().expect("fixture inputs have static shapes");
+            let n = shape.iter().product();
+            (v.name.clone(), Tensor::new(shape, TensorData::F32((0..n).map(|_| rng.next_f32()).collect())))
+        })
+        .collect()
+}
+
+pub fn load(path: &Path) -> ModelProto {
+    pdi_compile::onnx::load(path).unwrap_or_else(|e| panic!("{}: {e:#}", path.display())).model
+}
+
+pub struct CliResult {
+    pub code: i32,
+    pub stdout: String,
+    pub stderr: String,
+}
+
+pub fn cli(args: &[&str]) -> CliResult {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_pdi-compile")).args(args).current_dir(repo()).output().unwrap();
+    CliResult {
+        code: out.status.code().unwrap_or(-1),
+        stdout: String::from_utf8_lossy(&out.stdout).into_owned(),
+        stderr: String::from_utf8_lossy(&out.stderr).into_owned(),
+    }
+}
+
+/// Relative L2 error of `b` against `a`.
+pub fn rel_l2(a: &Tensor, b: &Tensor) -> f64 {
+    let (a, b) = (a.data.to_f64(), b.data.to_f64());
+    let num: f64 = a.iter().zip(&b).map(|(x, y)| (x - y).powi(2)).sum();
+    let den: f64 = a.iter().map(|x| x * x).sum();
+    (num / den.max(1e-30)).sqrt()
+}
