@@ -1,0 +1,112 @@
+//! Malformed files: one clear line on stderr, exit code 2, no panic, no partial output.
+
+mod common;
+use common::*;
+use pdi_compile::onnx::proto::*;
+use prost::Message;
+use std::path::Path;
+
+fn f32_input(name: &str, dims: &[i64]) -> ValueInfoProto {
+    let dim = dims.iter().map(|&d| Dimension { value: Some(DimensionValue::DimValue(d)), denotation: String::new() }).collect();
+    ValueInfoProto {
+        name: name.into(),
+        r#type: Some(TypeProto { value: Some(TypeValue::TensorType(TensorTypeProto { elem_type: 1, shape: Some(TensorShapeProto { dim }) })), denotation: String::new() }),
+        ..Default::default()
+    }
+}
+
+fn node(op: &str, inputs: &[&str], outputs: &[&str]) -> NodeProto {
+    NodeProto { op_type: op.into(), name: format!("{op}_{}", outputs[0]), input: inputs.iter().map(|s| s.to_string()).collect(), output: outputs.iter().map(|s| s.to_string()).collect(), ..Default::default() }
+}
+
+fn model(nodes: Vec<NodeProto>, inputs: Vec<ValueInfoProto>, outputs: &[&str], inits: Vec<TensorProto>) -> ModelProto {
+    ModelProto {
+        ir_version: 8,
+        opset_import: vec![OperatorSetIdProto { domain: String::new(), version: 17 }],
+        graph: Some(GraphProto {
+            node: nodes,
+            input: inputs,
+            output: outputs.iter().map(|o| ValueInfoProto { name: o.to_string(), ..Default::default() }).collect(),
+            initializer: inits,
+            ..Default::default()
+        }),
+        ..Default::default()
+    }
+}
+
+fn expect_clean_error(file: &Path, needle: &str) {
+    let out_dir = file.with_extension("out");
+    for args in [vec!["inspect", file.to_str().unwrap()], vec!["compile", file.to_str().unwrap(), "--pipeline", "passes/identity.yaml", "-o", out_dir.to_str().unwrap()]] {
+        let r = cli(&args);
+        assert_eq!(r.code, 2, "{args:?}: exit {} stderr {}", r.code, r.stderr);
+        let lines: Vec<&str> = r.stderr.lines().collect();
+        assert_eq!(lines.len(), 1, "{args:?}: expected one line, got {:?}", r.stderr);
+        assert!(lines[0].starts_with("error: "), "{:?}", lines[0]);
+        assert!(lines[0].to_lowercase().contains(needle), "{args:?}: {:?} does not mention {needle:?}", lines[0]);
+        assert!(!r.stderr.contains("panicked") && !r.stderr.contains("internal error"));
+        assert!(!out_dir.join("model.onnx").exists(), "a failed compile left an output");
+    }
+}
+
+#[test]
+fn malformed_models_fail_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let write = |name: &str, bytes: &[u8]| {
+        let p = dir.path().join(name);
+        std::fs::write(&p, bytes).unwrap();
+        p
+    };
+    let good = std::fs::read(repo().join("models/fixtures/pdinet_v5_const_op13_fold.onnx")).unwrap();
+    expect_clean_error(&write("truncated.onnx", &good[..good.len() / 2]), "protobuf");
+    expect_clean_error(&write("garbage.onnx", b"\xff\xff\xff\xff not onnx"), "protobuf");
+
+    let x = || f32_input("x", &[1, 3, 8, 8]);
+    let dangling = model(vec![node("Relu", &["nowhere"], &["y"])], vec![x()], &["y"], vec![]);
+    expect_clean_error(&write("dangling.onnx", &dangling.encode_to_vec()), "dangling value name 'nowhere'");
+
+    let cycle = model(vec![node("Add", &["x", "b"], &["a"]), node("Relu", &["a"], &["b"])], vec![x()], &["b"], vec![]);
+    expect_clean_error(&write("cycle.onnx", &cycle.encode_to_vec()), "cycle");
+
+    let negative = model(vec![node("Relu", &["x"], &["y"])], vec![f32_input("x", &[1, -3, 8, 8])], &["y"], vec![]);
+    expect_clean_error(&write("negative.onnx", &negative.encode_to_vec()), "negative dimension");
+
+    let absurd = model(vec![node("Relu", &["x"], &["y"])], vec![f32_input("x", &[1, 3, 1 << 40, 8])], &["y"], vec![]);
+    expect_clean_error(&write("absurd.onnx", &absurd.encode_to_vec()), "absurd dimension");
+
+    let lying = TensorProto { name: "w".into(), dims: vec![1 << 20, 1 << 20], data_type: 1, raw_data: vec![0; 16], ..Default::default() };
+    let lies = model(vec![node("Add", &["x", "w"], &["y"])], vec![x()], &["y"], vec![lying]);
+    expect_clean_error(&write("lying_initializer.onnx", &lies.encode_to_vec()), "initializer 'w'");
+
+    for (name, loc) in [("escape_dotdot.onnx", "../secret.bin"), ("escape_abs.onnx", "/etc/passwd")] {
+        let ext = TensorProto {
+            name: "w".into(),
+            dims: vec![4],
+            data_type: 1,
+            data_location: DATA_LOCATION_EXTERNAL,
+            external_data: vec![StringStringEntryProto { key: "location".into(), value: loc.into() }],
+            ..Default::default()
+        };
+        let m = model(vec![node("Add", &["x", "w"], &["y"])], vec![x()], &["y"], vec![ext]);
+        expect_clean_error(&write(name, &m.encode_to_vec()), "external data path");
+    }
+    expect_clean_error(&dir.path().join("missing.onnx"), "cannot read");
+}
+
+#[test]
+fn bad_pipelines_and_outputs_fail_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let fixture = repo().join("models/fixtures/pdinet_v5_const_op13_fold.onnx");
+    let bad = dir.path().join("bad.yaml");
+    std::fs::write(&bad, "name: x\npasses:\n  - no-such-pass\n").unwrap();
+    let out = dir.path().join("o");
+    let r = cli(&["compile", fixture.to_str().unwrap(), "--pipeline", bad.to_str().unwrap(), "-o", out.to_str().unwrap()]);
+    assert_eq!(r.code, 2);
+    assert!(r.stderr.contains("unknown pass 'no-such-pass'"), "{}", r.stderr);
+    assert!(!out.exists(), "nothing is written when the pipeline is bad");
+
+    let file_as_dir = dir.path().join("taken");
+    std::fs::write(&file_as_dir, "x").unwrap();
+    let r = cli(&["compile", fixture.to_str().unwrap(), "--pipeline", "passes/identity.yaml", "-o", file_as_dir.to_str().unwrap()]);
+    assert_eq!(r.code, 2);
+    assert!(r.stderr.contains("is not a folder"), "{}", r.stderr);
+}
