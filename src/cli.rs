@@ -34,6 +34,9 @@ pub enum Command {
         /// Camera blur map (.npy or YAML) for passes that bind the PSF.
         #[arg(long)]
         psf: Option<PathBuf>,
+        /// Store weights in DIR/model.onnx.data instead of one self-contained file.
+        #[arg(long)]
+        external_data: bool,
         /// Print the report as JSON instead of a summary.
         #[arg(long)]
         json: bool,
@@ -52,8 +55,8 @@ pub fn run(cli: Cli) -> Result<()> {
                 print!("{}", report.render());
             }
         }
-        Command::Compile { model, pipeline, out, psf, json } => {
-            let req = CompileRequest { model, pipeline, out_dir: out, context: PassContext { psf, calib: None } };
+        Command::Compile { model, pipeline, out, psf, external_data, json } => {
+            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib: None } };
             let r = compile(&req)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);

@@ -14,10 +14,16 @@ use sha2::{Digest, Sha256};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+/// Tensors from this size up go to the external data file; smaller ones (shapes, scales,
+/// biases) stay inline where tools that read the graph alone can still see them.
+const EXTERNAL_THRESHOLD: usize = 1024;
+
 pub struct CompileRequest {
     pub model: PathBuf,
     pub pipeline: PathBuf,
     pub out_dir: PathBuf,
+    /// Weights go to `model.onnx.data` beside the model (needed past protobuf's 2 GiB).
+    pub external_data: bool,
     pub context: PassContext,
 }
 
@@ -49,7 +55,11 @@ pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
 
     ensure_dir(&req.out_dir)?;
     let out_model = req.out_dir.join("model.onnx");
-    onnx::save(&model, &out_model)?;
+    if req.external_data {
+        onnx::io::save_with_external_data(&model, &out_model, EXTERNAL_THRESHOLD)?;
+    } else {
+        onnx::save(&model, &out_model)?;
+    }
     let report = CompileReport {
         tool_version: env!("CARGO_PKG_VERSION"),
         input: req.model.display().to_string(),

@@ -30,3 +30,15 @@ fn identity_compile_writes_folder_and_preserves_outputs() {
         }
     }
 }
+
+#[test]
+fn external_data_output_loads_back_identically() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = repo().join("models/fixtures/pdinet_v8_input_op13_fold.onnx");
+    let out = dir.path().join("ext");
+    let r = cli(&["compile", f.to_str().unwrap(), "--pipeline", "passes/identity.yaml", "-o", out.to_str().unwrap(), "--external-data"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let small = std::fs::metadata(out.join("model.onnx")).unwrap().len();
+    assert!(small < std::fs::metadata(&f).unwrap().len() / 4, "weights moved out ({small} bytes left)");
+    assert_eq!(load(&out.join("model.onnx")), load(&f));
+}

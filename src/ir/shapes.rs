@@ -651,14 +651,7 @@ fn fold_int_consts(node: &NodeProto, cx: &mut Inferred) {
             let to = DType::from_onnx(attr::int(node, "to", 0) as i32)?;
             (!matches!(to, DType::F16 | DType::Bf16 | DType::Str)).then(|| cast_like(t, to))
         }),
-        "Concat" => (0..node.input.len()).map(get).collect::<Option<Vec<Tensor>>>().and_then(|ts| {
-            if ts.iter().any(|t| t.shape.len() != 1) {
-                return None;
-            }
-            let dt = ts.first()?.dtype();
-            let v: Vec<i64> = ts.iter().map(|t| t.as_i64s()).collect::<Option<Vec<_>>>()?.concat();
-            Some(cast_like(Tensor::new(vec![v.len()], TensorData::I64(v)), dt))
-        }),
+        "Concat" => (0..node.input.len()).map(get).collect::<Option<Vec<Tensor>>>().and_then(|ts| concat_consts(&ts)),
         "Add" | "Sub" | "Mul" | "Div" | "Equal" | "Where" if node.op_type != "Where" || node.input.len() == 3 => {
             let ts: Option<Vec<Tensor>> = (0..node.input.len()).map(get).collect();
             ts.and_then(|ts| int_elementwise(&node.op_type, &ts))
@@ -684,6 +677,20 @@ fn fold_int_consts(node: &NodeProto, cx: &mut Inferred) {
     if let Some(t) = out {
         cx.consts.insert(node.output[0].clone(), t);
     }
+}
+
+/// Concatenates 1-D constants: int shape pieces, or float Resize scales ([1, 1] ++ factors).
+fn concat_consts(ts: &[Tensor]) -> Option<Tensor> {
+    if ts.iter().any(|t| t.shape.len() != 1) {
+        return None;
+    }
+    let dt = ts.first()?.dtype();
+    if dt == DType::F32 {
+        let v: Vec<f32> = ts.iter().map(|t| t.as_f32().map(<[f32]>::to_vec)).collect::<Option<Vec<_>>>()?.concat();
+        return Some(Tensor::new(vec![v.len()], TensorData::F32(v)));
+    }
+    let v: Vec<i64> = ts.iter().map(|t| t.as_i64s()).collect::<Option<Vec<_>>>()?.concat();
+    Some(cast_like(Tensor::new(vec![v.len()], TensorData::I64(v)), dt))
 }
 
 fn int_elementwise(op: &str, ts: &[Tensor]) -> Option<Tensor> {

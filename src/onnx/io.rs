@@ -141,7 +141,7 @@ fn safe_join(base: &Path, location: &str) -> Result<PathBuf> {
 pub fn save(model: &ModelProto, path: &Path) -> Result<()> {
     let len = model.encoded_len() as u64;
     if len > PROTOBUF_LIMIT {
-        bail!("model is {len} bytes, over protobuf's 2 GiB limit; save it with external data (--external-data)");
+        bail!("model is {len} bytes, over protobuf's 2 GiB limit; compile with --external-data");
     }
     write_atomic(path, &model.encode_to_vec())
 }

@@ -12,15 +12,19 @@ const FIX: &str = "run `scripts/setup` (installs onnxruntime==1.31.1 into the ca
 
 /// `PDI_ORT_LIB` if set, else the library inside the `onnxruntime` package that `python3` imports.
 pub fn locate() -> Result<PathBuf> {
-    if let Some(p) = std::env::var_os("PDI_ORT_LIB") {
+    let python = std::env::var("PDI_PYTHON").unwrap_or_else(|_| "python3".into());
+    locate_with(std::env::var_os("PDI_ORT_LIB"), &python)
+}
+
+fn locate_with(ort_lib: Option<std::ffi::OsString>, python: &str) -> Result<PathBuf> {
+    if let Some(p) = ort_lib {
         let p = PathBuf::from(p);
         if !p.is_file() {
             bail!("PDI_ORT_LIB points to {} which is not a file; {FIX}", p.display());
         }
         return Ok(p);
     }
-    let python = std::env::var("PDI_PYTHON").unwrap_or_else(|_| "python3".into());
-    let out = std::process::Command::new(&python)
+    let out = std::process::Command::new(python)
         .args(["-c", "import onnxruntime, os; print(os.path.join(os.path.dirname(onnxruntime.__file__), 'capi'))"])
         .output();
     let capi = match out {
@@ -50,4 +54,18 @@ pub fn environment() -> Result<&'static ort::environment::Environment> {
         builder.with_name("pdi-compile").build().map_err(|e| format!("cannot start ONNX Runtime: {e}"))
     });
     env.as_ref().map_err(|e| anyhow!("{e}")).context("ONNX Runtime unavailable")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn missing_library_errors_say_how_to_fix_it() {
+        let e = locate_with(Some("/nonexistent/libonnxruntime.so".into()), "python3").unwrap_err().to_string();
+        assert!(e.contains("PDI_ORT_LIB") && e.contains("scripts/setup"), "{e}");
+        assert!(!e.contains('\n'));
+        let e = locate_with(None, "/nonexistent/python").unwrap_err().to_string();
+        assert!(e.contains("not found") && e.contains("scripts/setup"), "{e}");
+    }
 }
