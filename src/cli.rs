@@ -34,6 +34,9 @@ pub enum Command {
         /// Camera blur map (.npy or YAML) for passes that bind the PSF.
         #[arg(long)]
         psf: Option<PathBuf>,
+        /// Outputs to keep (comma-separated), instead of recognizing the reconstruction output.
+        #[arg(long, value_delimiter = ',')]
+        keep_outputs: Option<Vec<String>>,
         /// Store weights in DIR/model.onnx.data instead of one self-contained file.
         #[arg(long)]
         external_data: bool,
@@ -55,8 +58,8 @@ pub fn run(cli: Cli) -> Result<()> {
                 print!("{}", report.render());
             }
         }
-        Command::Compile { model, pipeline, out, psf, external_data, json } => {
-            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib: None } };
+        Command::Compile { model, pipeline, out, psf, keep_outputs, external_data, json } => {
+            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib: None, keep_outputs } };
             let r = compile(&req)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);

@@ -11,6 +11,8 @@ pub mod fsutil;
 pub mod inspect;
 pub mod ir;
 pub mod onnx;
+pub mod optics;
+pub mod passes;
 pub mod pipeline;
 pub mod runtime;
 pub mod tensor;

@@ -143,7 +143,7 @@ fn forward_reach(g: &Graph, start: Vec<&str>) -> HashSet<usize> {
 }
 
 /// Walks back through BN and SiLU to the branch's convolution and names the branch.
-fn classify_branch(g: &Graph, inf: &Inferred, value: &str) -> &'static str {
+pub fn classify_branch(g: &Graph, inf: &Inferred, value: &str) -> &'static str {
     let Some(conv) = branch_conv(g, value) else { return "unknown" };
     let (k, groups, out_ch) = conv_geometry(conv, inf);
     if k == Some((1, 1)) {

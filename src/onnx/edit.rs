@@ -15,3 +15,83 @@ pub fn expose_outputs(model: &ModelProto, names: &[String]) -> ModelProto {
     }
     m
 }
+
+use super::proto::{GraphProto, TensorProto};
+use std::collections::HashSet;
+
+/// The initializer called `name`.
+pub fn initializer<'g>(g: &'g GraphProto, name: &str) -> Option<&'g TensorProto> {
+    g.initializer.iter().find(|t| t.name == name)
+}
+
+/// Adds (or replaces) an initializer.
+pub fn set_initializer(g: &mut GraphProto, t: TensorProto) {
+    match g.initializer.iter_mut().find(|x| x.name == t.name) {
+        Some(slot) => *slot = t,
+        None => g.initializer.push(t),
+    }
+}
+
+/// A value name not used anywhere in `g`, derived from `base`.
+pub fn fresh_name(g: &GraphProto, base: &str) -> String {
+    let used: HashSet<&str> = g
+        .node
+        .iter()
+        .flat_map(|n| n.input.iter().chain(&n.output))
+        .chain(g.initializer.iter().map(|t| &t.name))
+        .chain(g.input.iter().chain(&g.output).map(|v| &v.name))
+        .map(|s| s.as_str())
+        .collect();
+    (0..).map(|i| if i == 0 { base.to_string() } else { format!("{base}_{i}") }).find(|n| !used.contains(n.as_str())).expect("unbounded")
+}
+
+/// Makes every reader of `from` read `to` instead (graph outputs keep their names: when
+/// `from` is a graph output, the value `to` is renamed to `from` where it is produced).
+/// Returns false, changing nothing, when that rename is impossible (`to` is an input,
+/// an initializer or itself a graph output).
+pub fn replace_value(g: &mut GraphProto, from: &str, to: &str) -> bool {
+    let from_is_output = g.output.iter().any(|o| o.name == from);
+    if !from_is_output {
+        for n in &mut g.node {
+            for i in n.input.iter_mut().filter(|i| *i == from) {
+                *i = to.to_string();
+            }
+        }
+        return true;
+    }
+    let to_is_fixed = g.input.iter().chain(&g.output).any(|v| v.name == to) || g.initializer.iter().any(|t| t.name == to);
+    if to_is_fixed {
+        return false;
+    }
+    // `from` must stop being produced by its old producer before `to` takes its name.
+    for n in &mut g.node {
+        for o in n.output.iter_mut().filter(|o| *o == from) {
+            *o = String::new();
+        }
+    }
+    for n in &mut g.node {
+        for v in n.input.iter_mut().chain(n.output.iter_mut()).filter(|v| *v == to || *v == from) {
+            *v = from.to_string();
+        }
+    }
+    g.value_info.retain(|v| v.name != to);
+    true
+}
+
+/// Removes the nodes whose indices are in `dead`.
+pub fn remove_nodes(g: &mut GraphProto, dead: &HashSet<usize>) {
+    let mut i = 0;
+    g.node.retain(|_| {
+        let keep = !dead.contains(&i);
+        i += 1;
+        keep
+    });
+}
+
+/// Reorders nodes so producers come first (ONNX requires it; edits may append nodes).
+pub fn sort_topologically(g: &mut GraphProto) -> anyhow::Result<()> {
+    let order = crate::ir::Graph::build(g)?.order;
+    let mut nodes: Vec<Option<super::proto::NodeProto>> = std::mem::take(&mut g.node).into_iter().map(Some).collect();
+    g.node = order.into_iter().map(|i| nodes[i].take().expect("each index once")).collect();
+    Ok(())
+}

@@ -8,7 +8,7 @@ pub mod recipe;
 
 use crate::inspect::inspect;
 use crate::onnx::proto::ModelProto;
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use serde::Serialize;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -22,6 +22,8 @@ pub struct PassContext {
     pub psf: Option<PathBuf>,
     /// Calibration frames (`--calib`).
     pub calib: Option<PathBuf>,
+    /// Outputs `strip-recon` keeps (`--keep-outputs`), overriding recognition.
+    pub keep_outputs: Option<Vec<String>>,
 }
 
 pub trait Pass {
@@ -30,12 +32,8 @@ pub trait Pass {
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value>;
 }
 
-/// Every pass this build knows, by the name recipes use.
-pub const KNOWN_PASSES: &[&str] = &[];
-
 pub fn build_pass(spec: &PassSpec) -> Result<Box<dyn Pass>> {
-    let known = if KNOWN_PASSES.is_empty() { "none yet".to_string() } else { KNOWN_PASSES.join(", ") };
-    bail!("unknown pass '{}' in the pipeline (known passes: {known})", spec.name)
+    crate::passes::build(spec)
 }
 
 #[derive(Serialize, Clone, Copy)]

@@ -1,0 +1,42 @@
+//! The passes, one per file. Each states its contract in its doc comment: what it needs,
+//! what it guarantees, what it reports.
+
+pub mod bind_psf;
+pub mod cleanup;
+pub mod dce;
+pub mod fold_bn;
+pub mod fold_constants;
+pub mod fold_psf_gates;
+pub mod strip_recon;
+
+use crate::pipeline::{Pass, PassSpec};
+use anyhow::{anyhow, bail, Result};
+
+/// Every pass this build knows, by the name recipes use.
+pub const KNOWN: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "dce", "cleanup"];
+
+pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
+    Ok(match spec.name.as_str() {
+        "strip-recon" => Box::new(strip_recon::StripRecon { options: options(spec)? }),
+        "bind-psf" => Box::new(bind_psf::BindPsf { options: options(spec)? }),
+        "fold-constants" => Box::new(fold_constants::FoldConstants { options: options(spec)? }),
+        "fold-psf-gates" => Box::new(fold_psf_gates::FoldPsfGates { options: options(spec)? }),
+        "fold-bn" => Box::new(fold_bn::FoldBn { options: options(spec)? }),
+        "dce" => Box::new(dce::Dce),
+        "cleanup" => Box::new(cleanup::Cleanup),
+        other => bail!("unknown pass '{other}' in the pipeline (known passes: {})", KNOWN.join(", ")),
+    })
+}
+
+/// A pass's options from the recipe; missing options take their defaults, unknown ones are errors.
+fn options<T: serde::de::DeserializeOwned + Default>(spec: &PassSpec) -> Result<T> {
+    if spec.options.is_null() {
+        return Ok(T::default());
+    }
+    yaml_serde::from_value(spec.options.clone()).map_err(|e| anyhow!("options of pass {}: {e}", spec.name))
+}
+
+/// The graph of a model, or an error naming the pass.
+pub(crate) fn graph_mut(model: &mut crate::onnx::proto::ModelProto) -> Result<&mut crate::onnx::proto::GraphProto> {
+    model.graph.as_mut().ok_or_else(|| anyhow!("model has no graph"))
+}

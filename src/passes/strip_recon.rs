@@ -1,0 +1,58 @@
+//! `strip-recon`: keep only the detection outputs and what they need.
+//!
+//! Needs: the image input and a reconstruction output shaped like it (or `keep_outputs`).
+//! Guarantees: the kept outputs are computed exactly as before; every node that only served
+//! the reconstruction decoder is gone. Reports: outputs removed and kept, nodes removed.
+
+use crate::analysis::partition;
+use crate::ir::{infer, Graph};
+use crate::onnx::proto::ModelProto;
+use crate::pipeline::{Pass, PassContext};
+use anyhow::{bail, Result};
+
+#[derive(serde::Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Options {
+    /// Outputs to keep, overriding the recognition of the reconstruction output.
+    #[serde(default)]
+    pub keep_outputs: Option<Vec<String>>,
+}
+
+pub struct StripRecon {
+    pub options: Options,
+}
+
+impl Pass for StripRecon {
+    fn name(&self) -> &'static str {
+        "strip-recon"
+    }
+
+    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+        let keep: Vec<String> = match self.options.keep_outputs.clone().or_else(|| cx.keep_outputs.clone()) {
+            Some(k) => k,
+            None => {
+                let g = model.graph.as_ref().expect("checked by the pipeline");
+                let graph = Graph::build(g)?;
+                let p = partition::partition(&graph, &infer(&graph));
+                if p.recon_outputs.is_empty() {
+                    bail!("no output is shaped like the image input, so no reconstruction output was recognized; name the outputs to keep with --keep-outputs");
+                }
+                p.det_outputs
+            }
+        };
+        let g = super::graph_mut(model)?;
+        for k in &keep {
+            if !g.output.iter().any(|o| &o.name == k) {
+                let names: Vec<&str> = g.output.iter().map(|o| o.name.as_str()).collect();
+                bail!("output '{k}' to keep does not exist (outputs: {})", names.join(", "));
+            }
+        }
+        if keep.is_empty() {
+            bail!("no detection output left to keep");
+        }
+        let removed: Vec<String> = g.output.iter().map(|o| o.name.clone()).filter(|o| !keep.contains(o)).collect();
+        g.output.retain(|o| keep.contains(&o.name));
+        let (nodes, inits, _) = super::dce::eliminate(g)?;
+        Ok(serde_json::json!({ "outputs_removed": removed, "outputs_kept": keep, "nodes_removed": nodes, "initializers_removed": inits }))
+    }
+}

@@ -1,0 +1,127 @@
+//! The lossless pipeline (passes/detect-f32.yaml) on every fixture variant: detections equal
+//! the original's on ORT, nothing constant is left to compute, tract agrees.
+
+mod common;
+use common::*;
+use pdi_compile::ir::Graph;
+use pdi_compile::onnx::proto::ModelProto;
+use pdi_compile::optics::npy;
+use pdi_compile::runtime::{self, Engine};
+use pdi_compile::tensor::Tensor;
+use std::path::Path;
+
+fn blur_map(path: &Path) -> Tensor {
+    let a = npy::read(path).unwrap();
+    Tensor::f32(vec![1, 1, 6, 8], a.data)
+}
+
+/// Inputs for the original: the image, plus the blur map where it is an input.
+fn original_inputs(model: &ModelProto, psf: &Tensor, seed: u64) -> Vec<(String, Tensor)> {
+    inputs_for(model, seed).into_iter().map(|(n, t)| if n == "psf_blur" { (n, psf.clone()) } else { (n, t) }).collect()
+}
+
+fn compile(model: &Path, psf: &Path, out: &Path) -> serde_json::Value {
+    let r = cli(&["compile", model.to_str().unwrap(), "--pipeline", "passes/detect-f32.yaml", "--psf", psf.to_str().unwrap(), "-o", out.to_str().unwrap(), "--json"]);
+    assert_eq!(r.code, 0, "{}: {}", model.display(), r.stderr);
+    serde_json::from_str(&r.stdout).unwrap()
+}
+
+fn detections(engine: Engine, model: &ModelProto, inputs: &[(String, Tensor)]) -> Tensor {
+    let out = runtime::load(engine, model, inputs).unwrap().run(inputs).unwrap();
+    out.into_iter().find(|(n, _)| n == "detections").expect("detections output").1
+}
+
+fn assert_nothing_constant_left(model: &ModelProto, name: &str) {
+    let g = model.graph.as_ref().unwrap();
+    let graph = Graph::build(g).unwrap();
+    let consts: std::collections::HashSet<&str> = g.initializer.iter().map(|t| t.name.as_str()).collect();
+    for n in &g.node {
+        assert!(!matches!(n.op_type.as_str(), "Shape" | "Gather" | "Constant" | "ConstantOfShape" | "BatchNormalization" | "Identity"), "{name}: {} left", n.op_type);
+        let all_const = n.input.iter().filter(|i| !i.is_empty()).all(|i| consts.contains(i.as_str()));
+        assert!(!all_const, "{name}: {} '{}' computes only constants", n.op_type, n.name);
+        if n.op_type == "Resize" {
+            assert!(graph.producer_of(&n.input[0]).is_some(), "{name}: a Resize of a constant is left");
+        }
+    }
+    assert_eq!(g.output.len(), 1, "{name}: only the detection output remains");
+}
+
+#[test]
+fn detect_f32_is_lossless_on_every_fixture() {
+    let dir = tempfile::tempdir().unwrap();
+    let psf_path = repo().join("calib/radial_6x8.npy");
+    let psf = blur_map(&psf_path);
+    for f in fixtures() {
+        let name = f.file_name().unwrap().to_str().unwrap().to_string();
+        let out = dir.path().join(&name);
+        let report = compile(&f, &psf_path, &out);
+        let gates = report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == "fold-psf-gates").unwrap()["details"]["gates"].as_array().unwrap().len();
+        assert_eq!(gates, 3, "{name}: gates found by fold-psf-gates");
+        let (orig, cand) = (load(&f), load(&out.join("model.onnx")));
+        assert_nothing_constant_left(&cand, &name);
+        assert!(cand.graph.as_ref().unwrap().input.iter().all(|i| i.name != "psf_blur"), "{name}: blur map still an input");
+        let inputs = original_inputs(&orig, &psf, 21);
+        let cand_inputs: Vec<(String, Tensor)> = inputs.iter().filter(|(n, _)| n != "psf_blur").cloned().collect();
+        let reference = detections(Engine::Ort, &orig, &inputs);
+        let on_ort = detections(Engine::Ort, &cand, &cand_inputs);
+        let on_tract = detections(Engine::Tract, &cand, &cand_inputs);
+        let (e_ort, e_tract) = (rel_l2(&reference, &on_ort), rel_l2(&on_ort, &on_tract));
+        assert!(e_ort <= 1e-5, "{name}: candidate vs original on ORT rel L2 {e_ort:e}");
+        assert!(e_tract <= 1e-4, "{name}: candidate on tract vs ORT rel L2 {e_tract:e}");
+        let macs = (report["before"]["macs"].as_u64().unwrap(), report["after"]["macs"].as_u64().unwrap());
+        assert!(macs.1 < macs.0, "{name}: MACs {macs:?}");
+    }
+}
+
+/// A multi-lens camera's uniform blur map makes every gate uniform: each folds into its
+/// branch's last conv/BN or becomes a scalar; a gate driven to 0 removes its branch.
+#[test]
+fn uniform_and_zero_gates_fold_away() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = repo().join("models/fixtures/pdinet_v5_input_op17_nofold.onnx");
+    let mut model = load(&f);
+    // alpha_lam = -1 with k = 0.5 gives clip(sigmoid(-4) - 0.5) = 0: the Laplacian branch is off.
+    let g = model.graph.as_mut().unwrap();
+    let alpha = g.initializer.iter_mut().find(|t| t.name.ends_with("alpha")).expect("alpha initializer");
+    let mut v: Vec<f32> = pdi_compile::onnx::tensor_proto::to_tensor(alpha).unwrap().as_f32().unwrap().to_vec();
+    v[2] = -1.0;
+    *alpha = pdi_compile::onnx::tensor_proto::from_tensor(&alpha.name.clone(), &Tensor::f32(vec![3], v));
+    let edited = dir.path().join("edited.onnx");
+    pdi_compile::onnx::save(&model, &edited).unwrap();
+    let psf_path = repo().join("calib/uniform_6x8.npy");
+    let out = dir.path().join("out");
+    let report = compile(&edited, &psf_path, &out);
+    let gates = report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == "fold-psf-gates").unwrap()["details"]["gates"].clone();
+    let actions: Vec<(String, String)> = gates.as_array().unwrap().iter().map(|g| (g["branch"].as_str().unwrap().to_string(), g["action"].as_str().unwrap().to_string())).collect();
+    for (branch, action) in &actions {
+        match branch.as_str() {
+            "laplacian" => assert!(action.starts_with("zero everywhere: branch removed"), "{actions:?}"),
+            "large" => assert!(action.contains("folded into"), "{actions:?}"),
+            "small" => assert!(action.contains("scalar"), "{actions:?}"),
+            other => panic!("unexpected branch {other}: {actions:?}"),
+        }
+    }
+    let cand = load(&out.join("model.onnx"));
+    let depthwise_3x3 = cand.graph.as_ref().unwrap().node.iter().filter(|n| n.op_type == "Conv" && n.attribute.iter().any(|a| a.name == "group" && a.i.unwrap_or(1) > 1) && n.attribute.iter().any(|a| a.name == "kernel_shape" && a.ints == [3, 3])).count();
+    let orig_dw = model.graph.as_ref().unwrap().node.iter().filter(|n| n.op_type == "Conv" && n.attribute.iter().any(|a| a.name == "kernel_shape" && a.ints == [3, 3]) && n.attribute.iter().any(|a| a.name == "group" && a.i.unwrap_or(1) > 4)).count();
+    assert!(orig_dw >= 1 && depthwise_3x3 < orig_dw + 1, "the Laplacian conv is gone ({depthwise_3x3} grouped 3x3 left)");
+    let psf = blur_map(&psf_path);
+    let inputs = original_inputs(&model, &psf, 4);
+    let cand_inputs: Vec<(String, Tensor)> = inputs.iter().filter(|(n, _)| n != "psf_blur").cloned().collect();
+    let e = rel_l2(&detections(Engine::Ort, &model, &inputs), &detections(Engine::Ort, &cand, &cand_inputs));
+    assert!(e <= 1e-5, "rel L2 {e:e}");
+}
+
+#[test]
+fn a_blur_map_input_without_psf_is_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = repo().join("models/fixtures/pdinet_v8_input_op13_fold.onnx");
+    let r = cli(&["compile", f.to_str().unwrap(), "--pipeline", "passes/detect-f32.yaml", "-o", dir.path().join("o").to_str().unwrap()]);
+    assert_eq!(r.code, 2);
+    assert!(r.stderr.contains("--psf"), "{}", r.stderr);
+    let bad = dir.path().join("bad.yaml");
+    std::fs::write(&bad, "grid: [6, 8]\nvalues: [0.5]\n").unwrap();
+    let r = cli(&["compile", f.to_str().unwrap(), "--pipeline", "passes/detect-f32.yaml", "--psf", bad.to_str().unwrap(), "-o", dir.path().join("o").to_str().unwrap()]);
+    assert_eq!(r.code, 2);
+    assert!(r.stderr.contains("needs 48 values"), "{}", r.stderr);
+}
