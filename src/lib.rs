@@ -7,6 +7,8 @@
 pub mod analysis;
 pub mod cli;
 pub mod compile;
+pub mod detect;
+pub mod metrics;
 pub mod fsutil;
 pub mod inspect;
 pub mod ir;
