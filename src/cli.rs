@@ -44,9 +44,44 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Compare a compiled candidate with its reference on ORT and tract; exit 1 if a gate fails.
+    Verify {
+        /// The original model (run on ONNX Runtime).
+        #[arg(long)]
+        reference: PathBuf,
+        /// The compiled model (run on ONNX Runtime and tract).
+        #[arg(long)]
+        candidate: PathBuf,
+        /// Folder of frames (PNG/TIFF 8/16-bit grayscale or .npy), YOLO .txt labels beside them.
+        #[arg(long, conflicts_with = "random")]
+        data: Option<PathBuf>,
+        /// Number of synthetic frames when no --data is given.
+        #[arg(long, default_value_t = 8)]
+        random: usize,
+        /// Camera blur map for models that take it as an input.
+        #[arg(long)]
+        psf: Option<PathBuf>,
+        /// Thresholds (YAML, see passes/gate.yaml); without one, nothing can fail.
+        #[arg(long)]
+        gate: Option<PathBuf>,
+        /// Timed runs per model.
+        #[arg(long, default_value_t = 20)]
+        runs: usize,
+        /// Skip the tract run.
+        #[arg(long)]
+        no_tract: bool,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        #[arg(long)]
+        json: bool,
+    },
 }
 
-pub fn run(cli: Cli) -> Result<()> {
+/// Exit code of a run that worked but whose gate failed (bad input exits 2).
+pub const EXIT_GATE_FAILED: u8 = 1;
+
+/// Runs the command; returns the exit code (0, or 1 for a failed gate).
+pub fn run(cli: Cli) -> Result<u8> {
     match cli.command {
         Command::Inspect { model, json } => {
             let loaded = crate::onnx::load(&model)?;
@@ -74,6 +109,19 @@ pub fn run(cli: Cli) -> Result<()> {
                 }
             }
         }
+        Command::Verify { reference, candidate, data, random, psf, gate, runs, no_tract, seed, json } => {
+            let gate = gate.map(|g| crate::verify::gate::Gate::load(&g)).transpose()?;
+            let req = crate::verify::VerifyRequest { reference, candidate, data, random, psf, gate, latency_runs: runs, tract: !no_tract, seed };
+            let report = crate::verify::verify(&req)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            } else {
+                print!("{}", report.render());
+            }
+            if !report.passed {
+                return Ok(EXIT_GATE_FAILED);
+            }
+        }
     }
-    Ok(())
+    Ok(0)
 }

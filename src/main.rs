@@ -9,7 +9,7 @@ fn main() -> ExitCode {
     // A panic is a bug, but the user still gets one line and exit 2, not a backtrace.
     std::panic::set_hook(Box::new(|_| {}));
     match std::panic::catch_unwind(|| pdi_compile::cli::run(cli)) {
-        Ok(Ok(())) => ExitCode::SUCCESS,
+        Ok(Ok(code)) => ExitCode::from(code),
         Ok(Err(e)) => {
             eprintln!("error: {}", format!("{e:#}").replace('\n', " "));
             ExitCode::from(EXIT_ERROR)

@@ -1,0 +1,99 @@
+//! Input frames for verification and calibration: image folders (8/16-bit grayscale PNG or
+//! TIFF, float `.npy`) with optional YOLO labels, or deterministic synthetic thermal frames.
+
+use crate::metrics::coco_map::Truth;
+use crate::optics::npy;
+use crate::tensor::Tensor;
+use anyhow::{anyhow, bail, Context, Result};
+use std::path::{Path, PathBuf};
+
+pub struct Frame {
+    pub name: String,
+    /// [1, 1, H, W], values in [0, 1].
+    pub image: Tensor,
+    /// Boxes from a YOLO label file beside the image, in pixels.
+    pub labels: Option<Vec<Truth>>,
+}
+
+/// Frames from `dir`, each `height x width` (the model's input size).
+pub fn load_folder(dir: &Path, height: usize, width: usize) -> Result<Vec<Frame>> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("cannot read frame folder {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| matches!(p.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref(), Some("png" | "tif" | "tiff" | "npy")))
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        bail!("{} holds no .png, .tif or .npy frames", dir.display());
+    }
+    files.iter().map(|f| load_frame(f, height, width).with_context(|| format!("{}", f.display()))).collect()
+}
+
+fn load_frame(path: &Path, height: usize, width: usize) -> Result<Frame> {
+    let (w, h, data) = if path.extension().is_some_and(|e| e == "npy") {
+        let a = npy::read(path)?;
+        let dims: Vec<usize> = a.shape.iter().copied().filter(|&d| d != 1).collect();
+        let [h, w] = dims[..] else { bail!("expected a [H, W] array, got {:?}", a.shape) };
+        (w, h, a.data)
+    } else {
+        let img = image::open(path).map_err(|e| anyhow!("cannot decode image: {e}"))?;
+        let (w, h) = (img.width() as usize, img.height() as usize);
+        let data: Vec<f32> = match img {
+            image::DynamicImage::ImageLuma8(b) => b.into_raw().iter().map(|&v| v as f32 / 255.0).collect(),
+            image::DynamicImage::ImageLuma16(b) => b.into_raw().iter().map(|&v| v as f32 / 65535.0).collect(),
+            other => other.to_luma32f().into_raw(),
+        };
+        (w, h, data)
+    };
+    if (w, h) != (width, height) {
+        bail!("frame is {w}x{h} but the model takes {width}x{height}; rescale the frames first");
+    }
+    let labels = read_yolo_labels(&path.with_extension("txt"), width as f32, height as f32)?;
+    Ok(Frame { name: path.file_name().unwrap_or_default().to_string_lossy().into_owned(), image: Tensor::f32(vec![1, 1, h, w], data), labels })
+}
+
+/// `class cx cy w h` per line, normalized to [0, 1]; None when the file does not exist.
+pub fn read_yolo_labels(path: &Path, width: f32, height: f32) -> Result<Option<Vec<Truth>>> {
+    let Ok(text) = std::fs::read_to_string(path) else { return Ok(None) };
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+        let v: Vec<f32> = line.split_whitespace().map(|s| s.parse::<f32>()).collect::<std::result::Result<_, _>>().map_err(|_| anyhow!("{}:{}: not numbers", path.display(), i + 1))?;
+        let [c, cx, cy, w, h] = v[..] else { bail!("{}:{}: expected `class cx cy w h`", path.display(), i + 1) };
+        out.push(Truth { class: c as usize, bbox: [(cx - w / 2.0) * width, (cy - h / 2.0) * height, (cx + w / 2.0) * width, (cy + h / 2.0) * height] });
+    }
+    Ok(Some(out))
+}
+
+/// `n` synthetic frames: sky/ground gradient, low-frequency texture, warm blobs, noise.
+/// Deterministic in `seed`; a stand-in where no camera frames are given.
+pub fn synthetic(n: usize, height: usize, width: usize, seed: u64) -> Vec<Frame> {
+    let mut state = seed.wrapping_mul(0x9E3779B97F4A7C15).wrapping_add(1);
+    let mut rnd = move || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((state >> 40) as f32) / ((1u64 << 24) as f32)
+    };
+    (0..n)
+        .map(|k| {
+            let horizon = (0.3 + 0.3 * rnd()) * height as f32;
+            let (fx, fy, ph) = (1.0 + 5.0 * rnd(), 1.0 + 5.0 * rnd(), 6.0 * rnd());
+            let blobs: Vec<[f32; 5]> = (0..2 + (rnd() * 7.0) as usize)
+                .map(|_| [rnd() * width as f32, horizon + rnd() * (height as f32 - horizon), 3.0 + rnd() * width as f32 / 10.0, 3.0 + rnd() * height as f32 / 8.0, 0.2 + 0.3 * rnd()])
+                .collect();
+            let mut data = Vec::with_capacity(height * width);
+            for y in 0..height {
+                for x in 0..width {
+                    let (xf, yf) = (x as f32, y as f32);
+                    let mut v = if yf < horizon { 0.15 + 0.05 * yf / height as f32 } else { 0.35 + 0.15 * (yf - horizon) / height as f32 };
+                    v += 0.03 * (std::f32::consts::TAU * fx * xf / width as f32 + ph).sin() * (std::f32::consts::TAU * fy * yf / height as f32).cos();
+                    for b in &blobs {
+                        let d = ((xf - b[0]) / b[2]).powi(2) + ((yf - b[1]) / b[3]).powi(2);
+                        v += b[4] * (-d * d).exp();
+                    }
+                    v += 0.02 * (rnd() - 0.5);
+                    data.push(v.clamp(0.0, 1.0));
+                }
+            }
+            Frame { name: format!("synthetic_{k}"), image: Tensor::f32(vec![1, 1, height, width], data), labels: None }
+        })
+        .collect()
+}

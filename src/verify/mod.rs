@@ -1,0 +1,344 @@
+//! `pdi-compile verify`: a candidate against its reference, on the same frames.
+//!
+//! The reference runs on ONNX Runtime; the candidate on ONNX Runtime and on tract. Reported:
+//! per output max abs / rel L2 / cosine (detection outputs also per channel group, boxes
+//! apart from scores), detections decoded and compared as COCO mAP (the candidate's against
+//! the reference's detections, and both against labels when frames have them), and latency
+//! measured interleaved. A gate turns the report into pass/fail.
+
+pub mod gate;
+pub mod latency;
+
+use crate::analysis::head::{Head, HeadKind};
+use crate::analysis::partition;
+use crate::detect::{decode, nms::nms, Detection};
+use crate::frames::{self, Frame};
+use crate::ir::{infer, Graph};
+use crate::metrics::coco_map::{coco_map, MapResult, Truth};
+use crate::metrics::tensor_error::{compare, TensorError};
+use crate::onnx::proto::ModelProto;
+use crate::optics::blur_map::BlurMap;
+use crate::runtime::{self, Engine, Runtime};
+use crate::tensor::Tensor;
+use anyhow::{anyhow, bail, Result};
+use gate::{Check, Gate};
+use serde::Serialize;
+use std::path::PathBuf;
+
+/// YOLO validation's candidate threshold: low, so the precision-recall curve is complete.
+const EVAL_CONF: f32 = 0.001;
+/// A reference detection counts as an object to agree on from this score (a deployment's usual cut).
+const AGREEMENT_CONF: f32 = 0.25;
+/// COCO scores at most this many detections per frame and class; truths are capped alike so
+/// that a candidate identical to the reference scores 1.
+const TRUTH_PER_CLASS: usize = 100;
+/// Detections kept per frame after NMS (ultralytics' max_det).
+const MAX_DET: usize = 300;
+
+pub struct VerifyRequest {
+    pub reference: PathBuf,
+    pub candidate: PathBuf,
+    pub data: Option<PathBuf>,
+    pub random: usize,
+    pub psf: Option<PathBuf>,
+    pub gate: Option<Gate>,
+    pub latency_runs: usize,
+    pub tract: bool,
+    pub seed: u64,
+}
+
+#[derive(Serialize)]
+pub struct GroupError {
+    pub group: &'static str,
+    pub ort: TensorError,
+}
+
+#[derive(Serialize)]
+pub struct OutputReport {
+    pub name: String,
+    /// Candidate on ORT vs reference on ORT.
+    pub ort: TensorError,
+    /// Candidate on tract vs candidate on ORT.
+    pub tract: Option<TensorError>,
+    pub groups: Vec<GroupError>,
+}
+
+#[derive(Serialize)]
+pub struct DetectionReport {
+    pub head: Head,
+    /// How the reference's detections used as truth were chosen.
+    pub truth: String,
+    pub truth_boxes: usize,
+    /// Candidate (ORT) detections scored against the reference's.
+    pub agreement: MapResult,
+    pub agreement_tract: Option<MapResult>,
+    /// Against the frames' labels, when every frame has them.
+    pub reference_vs_labels: Option<MapResult>,
+    pub candidate_vs_labels: Option<MapResult>,
+}
+
+#[derive(Serialize)]
+pub struct VerifyReport {
+    pub reference: String,
+    pub candidate: String,
+    pub frames: usize,
+    pub frame_source: String,
+    pub outputs: Vec<OutputReport>,
+    pub detection: Option<DetectionReport>,
+    pub latency: Vec<latency::Latency>,
+    /// Candidate / reference median on ORT.
+    pub latency_ratio: f64,
+    pub checks: Vec<Check>,
+    pub passed: bool,
+}
+
+struct Side {
+    model: ModelProto,
+    image_input: String,
+    other_inputs: Vec<String>,
+    shape: (usize, usize),
+}
+
+fn side(path: &PathBuf, what: &str) -> Result<Side> {
+    let model = crate::onnx::load(path)?.model;
+    let g = model.graph.as_ref().ok_or_else(|| anyhow!("{what} has no graph"))?;
+    let graph = Graph::build(g)?;
+    let inf = infer(&graph);
+    let image_input = partition::image_input(&graph, &inf).ok_or_else(|| anyhow!("{what} {} has no [1, C, H, W] image input", path.display()))?;
+    let s = inf.shape(&image_input).ok_or_else(|| anyhow!("{what}'s image input '{image_input}' has no static shape"))?;
+    let other_inputs = graph.inputs.iter().map(|v| v.name.clone()).filter(|n| *n != image_input).collect();
+    Ok(Side { shape: (s[2], s[3]), image_input, other_inputs, model })
+}
+
+fn feeds(side: &Side, frame: &Frame, psf: Option<&Tensor>) -> Result<Vec<(String, Tensor)>> {
+    let mut v = vec![(side.image_input.clone(), frame.image.clone())];
+    for n in &side.other_inputs {
+        let p = psf.ok_or_else(|| anyhow!("input '{n}' needs a value: give the camera's blur map with --psf"))?;
+        v.push((n.clone(), p.clone()));
+    }
+    Ok(v)
+}
+
+fn detections(head: &Head, outputs: &[(String, Tensor)]) -> Result<Vec<Detection>> {
+    let name = head.output.as_deref().ok_or_else(|| anyhow!("no detection output"))?;
+    let t = &outputs.iter().find(|(n, _)| n == name).ok_or_else(|| anyhow!("output {name} missing"))?.1;
+    let iou = if head.kind == HeadKind::Yolov8Dfl { 0.7 } else { 0.6 }; // ultralytics val defaults
+    Ok(nms(decode::candidates(head.kind, t, EVAL_CONF)?, iou, MAX_DET))
+}
+
+pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
+    let reference = side(&req.reference, "reference")?;
+    let candidate = side(&req.candidate, "candidate")?;
+    if reference.shape != candidate.shape {
+        bail!("reference takes {:?} frames, candidate {:?}", reference.shape, candidate.shape);
+    }
+    let (h, w) = reference.shape;
+    let (frames, frame_source) = match &req.data {
+        Some(d) => (frames::load_folder(d, h, w)?, d.display().to_string()),
+        None => (frames::synthetic(req.random.max(1), h, w, req.seed), format!("{} synthetic frames, seed {}", req.random.max(1), req.seed)),
+    };
+    let psf = req.psf.as_ref().map(|p| BlurMap::load(p).map(|m| Tensor::f32(vec![1, 1, m.rows, m.cols], m.values))).transpose()?;
+    let head = {
+        let r = crate::inspect::inspect(&reference.model)?;
+        r.head
+    };
+    let cand_outputs: Vec<String> = candidate.model.graph.as_ref().unwrap().output.iter().map(|o| o.name.clone()).collect();
+    let compared: Vec<String> = reference.model.graph.as_ref().unwrap().output.iter().map(|o| o.name.clone()).filter(|n| cand_outputs.contains(n)).collect();
+    if compared.is_empty() {
+        bail!("the candidate shares no output name with the reference; nothing to compare");
+    }
+
+    let first_ref = feeds(&reference, &frames[0], psf.as_ref())?;
+    let first_cand = feeds(&candidate, &frames[0], psf.as_ref())?;
+    let mut ref_rt = runtime::load(Engine::Ort, &reference.model, &first_ref)?;
+    let mut cand_rt = runtime::load(Engine::Ort, &candidate.model, &first_cand)?;
+    let mut tract_rt = if req.tract { Some(runtime::load(Engine::Tract, &candidate.model, &first_cand)?) } else { None };
+
+    let n_out = compared.len();
+    let (mut ref_vals, mut cand_vals, mut tract_vals) = (vec![Vec::new(); n_out], vec![Vec::new(); n_out], vec![Vec::new(); n_out]);
+    let mut shapes = vec![Vec::new(); n_out];
+    let (mut ref_dets, mut cand_dets, mut tract_dets) = (Vec::new(), Vec::new(), Vec::new());
+    let decodable = head.kind != HeadKind::Raw && head.output.as_ref().is_some_and(|o| compared.contains(o));
+    for f in &frames {
+        let r = ref_rt.run(&feeds(&reference, f, psf.as_ref())?)?;
+        let cf = feeds(&candidate, f, psf.as_ref())?;
+        let c = cand_rt.run(&cf)?;
+        let t = tract_rt.as_mut().map(|rt| rt.run(&cf)).transpose()?;
+        for (k, name) in compared.iter().enumerate() {
+            let get = |outs: &[(String, Tensor)]| outs.iter().find(|(n, _)| n == name).map(|(_, t)| t.clone()).ok_or_else(|| anyhow!("output {name} missing"));
+            let (rt_, ct) = (get(&r)?, get(&c)?);
+            if rt_.shape != ct.shape {
+                bail!("output {name}: reference shape {:?}, candidate {:?}", rt_.shape, ct.shape);
+            }
+            shapes[k] = rt_.shape.clone();
+            ref_vals[k].push(rt_);
+            cand_vals[k].push(ct);
+            if let Some(t) = &t {
+                tract_vals[k].push(get(t)?);
+            }
+        }
+        if decodable {
+            ref_dets.push(detections(&head, &r)?);
+            cand_dets.push(detections(&head, &c)?);
+            if let Some(t) = &t {
+                tract_dets.push(detections(&head, t)?);
+            }
+        }
+    }
+
+    let flat = |ts: &[Tensor]| -> Vec<f64> { ts.iter().flat_map(|t| t.data.to_f64()).collect() };
+    let mut outputs = Vec::new();
+    for (k, name) in compared.iter().enumerate() {
+        let (r, c) = (flat(&ref_vals[k]), flat(&cand_vals[k]));
+        let groups = if Some(name) == head.output.as_ref() {
+            decode::channel_groups(head.kind, &shapes[k])
+                .into_iter()
+                .map(|(g, range)| {
+                    let pick = |ts: &[Tensor]| -> Vec<f64> { ts.iter().flat_map(|t| select_channels(head.kind, t, range.clone())).collect() };
+                    GroupError { group: g, ort: compare(&pick(&ref_vals[k]), &pick(&cand_vals[k])) }
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let tract = (!tract_vals[k].is_empty()).then(|| compare(&c, &flat(&tract_vals[k])));
+        outputs.push(OutputReport { name: name.clone(), ort: compare(&r, &c), tract, groups });
+    }
+
+    let detection = decodable.then(|| detection_report(&head, &frames, &ref_dets, &cand_dets, &tract_dets));
+
+    let latency = {
+        let rf = feeds(&reference, &frames[0], psf.as_ref())?;
+        let cf = feeds(&candidate, &frames[0], psf.as_ref())?;
+        let mut models: Vec<(String, &mut dyn Runtime, Vec<(String, Tensor)>)> = vec![("reference/ort".into(), ref_rt.as_mut(), rf), ("candidate/ort".into(), cand_rt.as_mut(), cf.clone())];
+        if let Some(t) = tract_rt.as_mut() {
+            models.push(("candidate/tract".into(), t.as_mut(), cf));
+        }
+        latency::interleaved(&mut models, req.latency_runs.max(1))?
+    };
+    let latency_ratio = latency[1].median_ms / latency[0].median_ms;
+
+    let checks = req.gate.as_ref().map(|g| checks(g, &outputs, detection.as_ref(), latency_ratio)).unwrap_or_default();
+    let passed = checks.iter().all(|c| c.passed);
+    Ok(VerifyReport {
+        reference: req.reference.display().to_string(),
+        candidate: req.candidate.display().to_string(),
+        frames: frames.len(),
+        frame_source,
+        outputs,
+        detection,
+        latency,
+        latency_ratio,
+        checks,
+        passed,
+    })
+}
+
+/// Values of channels `range` of a detection tensor ([1,N,C] for v5, [1,C,N] for v8).
+fn select_channels(kind: HeadKind, t: &Tensor, range: std::ops::Range<usize>) -> Vec<f64> {
+    let v = t.data.to_f64();
+    match kind {
+        HeadKind::Yolov5Anchor => v.chunks_exact(t.shape[2]).flat_map(|row| row[range.clone()].to_vec()).collect(),
+        _ => v[range.start * t.shape[2]..range.end * t.shape[2]].to_vec(),
+    }
+}
+
+fn detection_report(head: &Head, frames: &[Frame], reference: &[Vec<Detection>], candidate: &[Vec<Detection>], tract: &[Vec<Detection>]) -> DetectionReport {
+    let classes = head.classes.unwrap_or(1).max(1);
+    let to_truth = |d: &Detection| Truth { class: d.class, bbox: d.bbox };
+    let confident = reference.iter().any(|ds| ds.iter().any(|d| d.score >= AGREEMENT_CONF));
+    // An untrained (or very unsure) reference has no confident boxes: then every box it keeps
+    // after NMS is an object to agree on, and precision and recall say how many the candidate
+    // reproduces and how many it adds.
+    let floor = if confident { AGREEMENT_CONF } else { EVAL_CONF };
+    let how = if confident {
+        format!("reference detections with score >= {AGREEMENT_CONF}")
+    } else {
+        format!("no reference score reaches {AGREEMENT_CONF}: all its detections after NMS")
+    };
+    let truth: Vec<Vec<Truth>> = reference
+        .iter()
+        .map(|ds| {
+            let mut per_class = vec![0usize; classes];
+            ds.iter() // sorted best first by NMS
+                .filter(|d| d.score >= floor && d.class < classes)
+                .filter(|d| {
+                    per_class[d.class] += 1;
+                    per_class[d.class] <= TRUTH_PER_CLASS
+                })
+                .map(to_truth)
+                .collect()
+        })
+        .collect();
+    let labels: Option<Vec<Vec<Truth>>> = frames.iter().map(|f| f.labels.clone()).collect();
+    DetectionReport {
+        head: head.clone(),
+        truth: how,
+        truth_boxes: truth.iter().map(Vec::len).sum(),
+        agreement: coco_map(&truth, candidate, classes),
+        agreement_tract: (!tract.is_empty()).then(|| coco_map(&truth, tract, classes)),
+        reference_vs_labels: labels.as_ref().map(|l| coco_map(l, reference, classes)),
+        candidate_vs_labels: labels.as_ref().map(|l| coco_map(l, candidate, classes)),
+    }
+}
+
+fn checks(g: &Gate, outputs: &[OutputReport], det: Option<&DetectionReport>, latency_ratio: f64) -> Vec<Check> {
+    let mut c = Vec::new();
+    for o in outputs {
+        if let Some(t) = g.max_rel_l2 {
+            c.push(Check::max(format!("{}: rel L2 (ort)", o.name), o.ort.rel_l2, t));
+        }
+        if let Some(t) = g.min_cosine {
+            c.push(Check::min(format!("{}: cosine (ort)", o.name), o.ort.cosine, t));
+        }
+        if let (Some(t), Some(e)) = (g.max_rel_l2_tract, o.tract) {
+            c.push(Check::max(format!("{}: rel L2 (tract vs ort)", o.name), e.rel_l2, t));
+        }
+    }
+    if let Some(d) = det {
+        if let Some(t) = g.min_map_agreement {
+            c.push(Check::min("mAP@.5:.95 agreement with the reference", d.agreement.map50_95, t));
+        }
+        if let (Some(t), Some(r), Some(k)) = (g.max_map_drop, &d.reference_vs_labels, &d.candidate_vs_labels) {
+            c.push(Check::max("mAP@.5:.95 drop against labels", r.map50_95 - k.map50_95, t));
+        }
+    }
+    if let Some(t) = g.max_latency_ratio {
+        c.push(Check::max("latency ratio candidate/reference (ort)", latency_ratio, t));
+    }
+    c
+}
+
+impl VerifyReport {
+    pub fn render(&self) -> String {
+        use std::fmt::Write;
+        let mut s = String::new();
+        let _ = writeln!(s, "verify {} against {} on {} frame(s) ({})", self.candidate, self.reference, self.frames, self.frame_source);
+        for o in &self.outputs {
+            let _ = writeln!(s, "  {:<14} ort: max abs {:.3e}  rel L2 {:.3e}  cosine {:.8}", o.name, o.ort.max_abs, o.ort.rel_l2, o.ort.cosine);
+            for g in &o.groups {
+                let _ = writeln!(s, "    {:<12} max abs {:.3e}  rel L2 {:.3e}", g.group, g.ort.max_abs, g.ort.rel_l2);
+            }
+            if let Some(t) = &o.tract {
+                let _ = writeln!(s, "    tract vs ort  max abs {:.3e}  rel L2 {:.3e}", t.max_abs, t.rel_l2);
+            }
+        }
+        if let Some(d) = &self.detection {
+            let _ = writeln!(s, "  detections ({:?}): agreement mAP@.5 {:.4}  mAP@.5:.95 {:.4}  over {} reference boxes ({})", d.head.kind, d.agreement.map50, d.agreement.map50_95, d.truth_boxes, d.truth);
+            if let (Some(r), Some(c)) = (&d.reference_vs_labels, &d.candidate_vs_labels) {
+                let _ = writeln!(s, "  vs labels: reference mAP@.5 {:.4} mAP@.5:.95 {:.4}; candidate {:.4} / {:.4}", r.map50, r.map50_95, c.map50, c.map50_95);
+            }
+        }
+        for l in &self.latency {
+            let _ = writeln!(s, "  latency {:<16} median {:.2} ms (min {:.2}, {} runs)", l.name, l.median_ms, l.min_ms, l.runs);
+        }
+        let _ = writeln!(s, "  latency ratio candidate/reference on ORT: {:.3}", self.latency_ratio);
+        for c in &self.checks {
+            let _ = writeln!(s, "  [{}] {} = {:.4e} ({} {:.4e})", if c.passed { "pass" } else { "FAIL" }, c.name, c.value, c.kind, c.threshold);
+        }
+        if !self.checks.is_empty() {
+            let _ = writeln!(s, "{}", if self.passed { "gate passed" } else { "gate FAILED" });
+        }
+        s
+    }
+}
