@@ -7,13 +7,14 @@ pub mod dce;
 pub mod fold_bn;
 pub mod fold_constants;
 pub mod fold_psf_gates;
+pub mod resize_to_deconv;
 pub mod strip_recon;
 
 use crate::pipeline::{Pass, PassSpec};
 use anyhow::{anyhow, bail, Result};
 
 /// Every pass this build knows, by the name recipes use.
-pub const KNOWN: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "dce", "cleanup"];
+pub const KNOWN: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup"];
 
 pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
     Ok(match spec.name.as_str() {
@@ -22,6 +23,7 @@ pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
         "fold-constants" => Box::new(fold_constants::FoldConstants { options: options(spec)? }),
         "fold-psf-gates" => Box::new(fold_psf_gates::FoldPsfGates { options: options(spec)? }),
         "fold-bn" => Box::new(fold_bn::FoldBn { options: options(spec)? }),
+        "resize-to-deconv" => Box::new(resize_to_deconv::ResizeToDeconv),
         "dce" => Box::new(dce::Dce),
         "cleanup" => Box::new(cleanup::Cleanup),
         other => bail!("unknown pass '{other}' in the pipeline (known passes: {})", KNOWN.join(", ")),
