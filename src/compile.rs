@@ -88,7 +88,7 @@ fn manifest(r: &CompileReport, model: &Path) -> Result<String> {
         model: &'static str,
         model_sha256: String,
         pipeline: &'a Recipe,
-        passes: Vec<&'a str>,
+        passes: &'a [PassReport],
     }
     let m = Manifest {
         tool: "pdi-compile",
@@ -98,7 +98,7 @@ fn manifest(r: &CompileReport, model: &Path) -> Result<String> {
         model: "model.onnx",
         model_sha256: hex(&Sha256::digest(std::fs::read(model)?)),
         pipeline: &r.pipeline,
-        passes: r.passes.iter().map(|p| p.pass.as_str()).collect(),
+        passes: &r.passes,
     };
     Ok(yaml_serde::to_string(&m)?)
 }
