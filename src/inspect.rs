@@ -121,6 +121,10 @@ fn shape_str(s: &Option<Vec<i64>>) -> String {
     }
 }
 
+fn dtype_str(d: Option<crate::tensor::DType>) -> String {
+    d.map_or("?".into(), |d| format!("{d:?}").to_lowercase())
+}
+
 fn human(n: u64) -> String {
     match n {
         n if n >= 1_000_000_000 => format!("{:.2} G", n as f64 / 1e9),
@@ -137,16 +141,17 @@ impl Report {
         let opsets: Vec<String> = self.opsets.iter().map(|(d, v)| format!("{}:{v}", if d.is_empty() { "ai.onnx" } else { d })).collect();
         let _ = writeln!(s, "IR {}  opsets {}  producer {}", self.ir_version, opsets.join(", "), self.producer);
         for v in &self.inputs {
-            let _ = writeln!(s, "input   {:<14} {:?} {}", v.name, v.dtype, shape_str(&v.shape));
+            let _ = writeln!(s, "input   {:<14} {} {}", v.name, dtype_str(v.dtype), shape_str(&v.shape));
         }
         for v in &self.outputs {
-            let _ = writeln!(s, "output  {:<14} {:?} {}  ({})", v.name, v.dtype, shape_str(&v.shape), v.role.unwrap_or(""));
+            let _ = writeln!(s, "output  {:<14} {} {}  ({})", v.name, dtype_str(v.dtype), shape_str(&v.shape), v.role.unwrap_or(""));
         }
         let _ = writeln!(s, "\n{:<12} {:>12} {:>12} {:>12} {:>12}", "", "total", "recon-only", "det-only", "shared");
         for (name, v) in [("params", self.params), ("MACs", self.macs)] {
             let _ = writeln!(s, "{:<12} {:>12} {:>12} {:>12} {:>12}", name, human(v.total), human(v.reconstruction_only), human(v.detection_only), human(v.shared));
         }
-        let _ = writeln!(s, "\nhead: {:?} (classes {:?}, output {:?})", self.head.kind, self.head.classes, self.head.output);
+        let classes = self.head.classes.map_or("?".into(), |c| c.to_string());
+        let _ = writeln!(s, "\nhead: {:?}, {classes} classes, output '{}'", self.head.kind, self.head.output.as_deref().unwrap_or("?"));
         match self.bridge.blur_maps.first() {
             Some(b) => {
                 let _ = writeln!(s, "PALS-Bridge: blur map '{}' {:?} ({}), {} gate(s)", b.name, b.shape, b.source, self.bridge.gates.len());
