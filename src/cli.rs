@@ -44,6 +44,64 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// PSF simulation and the blur-index map.
+    Psf {
+        #[command(subcommand)]
+        command: PsfCommand,
+    },
+    /// Clean synthetic thermal scenes with YOLO labels (6 M3FD classes), 16-bit PNG.
+    Synth {
+        out: PathBuf,
+        #[arg(long, default_value_t = 16)]
+        n: usize,
+        /// WIDTHxHEIGHT
+        #[arg(long, default_value = "640x480")]
+        size: String,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
+    /// Single-lens degradation of an image or folder: spatially varying PSF blur, noise, quantization.
+    Degrade {
+        input: PathBuf,
+        output: PathBuf,
+        /// PSF set folder (from `psf simulate`).
+        #[arg(long)]
+        psf: PathBuf,
+        /// Quantization step in detector counts (paper: 10 high SNR, 90 low SNR).
+        #[arg(long)]
+        q: f64,
+        /// Noise standard deviation in units of q.
+        #[arg(long, default_value_t = 2.0)]
+        sigma: f64,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Detector full scale in counts (14-bit).
+        #[arg(long, default_value_t = crate::optics::degrade::FULL_SCALE_14BIT)]
+        full_scale: f64,
+    },
+    /// A calibration set in one command: clean frames (synthetic, or a real folder rescaled
+    /// with its labels) and their degraded copies.
+    Dataset {
+        out: PathBuf,
+        #[arg(long)]
+        psf: PathBuf,
+        /// Real frames to use instead of synthetic ones (YOLO .txt labels beside them).
+        #[arg(long)]
+        from: Option<PathBuf>,
+        /// COCO JSON labels for --from (FLIR ADAS ships these).
+        #[arg(long, requires = "from")]
+        coco: Option<PathBuf>,
+        #[arg(long, default_value_t = 64)]
+        n: usize,
+        #[arg(long, default_value = "640x480")]
+        size: String,
+        #[arg(long, default_value_t = 90.0)]
+        q: f64,
+        #[arg(long, default_value_t = 2.0)]
+        sigma: f64,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
     /// Compare a compiled candidate with its reference on ORT and tract; exit 1 if a gate fails.
     Verify {
         /// The original model (run on ONNX Runtime).
@@ -75,6 +133,39 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+}
+
+#[derive(Subcommand)]
+pub enum PsfCommand {
+    /// Simulate one PSF per field region from a lens file (scalar diffraction over the band).
+    Simulate {
+        #[arg(long)]
+        lens: PathBuf,
+        #[arg(short = 'o', long = "out")]
+        out: PathBuf,
+        /// Field regions, ROWSxCOLS.
+        #[arg(long, default_value = "6x8")]
+        grid: String,
+        /// Kernel size in pixels (odd).
+        #[arg(long, default_value_t = 31)]
+        kernel: usize,
+    },
+    /// Blur-index map from a PSF set: RMS spot radius per region, normalized to [0, 1].
+    BlurMap {
+        dir: PathBuf,
+        /// FILE.npy, FILE.yaml, or FILE without extension for both.
+        #[arg(short = 'o', long = "out")]
+        out: PathBuf,
+    },
+}
+
+/// Parses "AxB" into (A, B).
+fn pair(s: &str, what: &str) -> Result<(usize, usize)> {
+    let v: Vec<usize> = s.split('x').map(|p| p.trim().parse()).collect::<std::result::Result<_, _>>().map_err(|_| anyhow::anyhow!("{what} '{s}' is not AxB (e.g. 640x480)"))?;
+    match v[..] {
+        [a, b] if a > 0 && b > 0 && a <= 16384 && b <= 16384 => Ok((a, b)),
+        _ => anyhow::bail!("{what} '{s}' is not AxB with sizes in 1..16384"),
+    }
 }
 
 /// Exit code of a run that worked but whose gate failed (bad input exits 2).
@@ -109,6 +200,33 @@ pub fn run(cli: Cli) -> Result<u8> {
                 }
             }
         }
+        Command::Psf { command } => psf_command(command)?,
+        Command::Synth { out, n, size, seed } => {
+            let (w, h) = pair(&size, "--size")?;
+            let boxes = crate::dataset::write_synthetic(&out, n, w, h, seed)?;
+            println!("wrote {n} scenes ({boxes} labelled objects) at {w}x{h} to {}", out.display());
+        }
+        Command::Degrade { input, output, psf, q, sigma, seed, full_scale } => {
+            let noise = noise_model(q, sigma, full_scale)?;
+            let set = crate::optics::psf_set::PsfSet::load(&psf)?;
+            let s = crate::dataset::degrade_path(&input, &output, &set, noise, seed)?;
+            println!("degraded {} frame(s), q {q}, sigma {sigma}: PSNR {:.2} dB against clean (blur alone {:.2} dB)", s.frames, s.psnr_db, s.blur_psnr_db);
+        }
+        Command::Dataset { out, psf, from, coco, n, size, q, sigma, seed } => {
+            let (w, h) = pair(&size, "--size")?;
+            let noise = noise_model(q, sigma, crate::optics::degrade::FULL_SCALE_14BIT)?;
+            let set = crate::optics::psf_set::PsfSet::load(&psf)?;
+            crate::fsutil::ensure_dir(&out)?;
+            let clean = out.join("clean");
+            let boxes = match &from {
+                Some(dir) => crate::dataset::import_folder(dir, &clean, w, h, coco.as_deref())?,
+                None => crate::dataset::write_synthetic(&clean, n, w, h, seed)?,
+            };
+            let s = crate::dataset::degrade_path(&clean, &out.join("degraded"), &set, noise, seed)?;
+            let summary = serde_json::json!({ "source": from.as_ref().map_or("synthetic".to_string(), |p| p.display().to_string()), "size": [w, h], "labelled_objects": boxes, "psf": psf.display().to_string(), "degrade": s, "seed": seed });
+            crate::fsutil::write_atomic(&out.join("dataset.yaml"), yaml_serde::to_string(&summary)?.as_bytes())?;
+            println!("dataset {}: {} frames, {boxes} objects; degraded PSNR {:.2} dB", out.display(), s.frames, s.psnr_db);
+        }
         Command::Verify { reference, candidate, data, random, psf, gate, runs, no_tract, seed, json } => {
             let gate = gate.map(|g| crate::verify::gate::Gate::load(&g)).transpose()?;
             let req = crate::verify::VerifyRequest { reference, candidate, data, random, psf, gate, latency_runs: runs, tract: !no_tract, seed };
@@ -124,4 +242,46 @@ pub fn run(cli: Cli) -> Result<u8> {
         }
     }
     Ok(0)
+}
+
+fn noise_model(q: f64, sigma: f64, full_scale: f64) -> Result<crate::optics::degrade::NoiseModel> {
+    if !(q > 0.0 && q.is_finite()) || !(sigma >= 0.0 && sigma.is_finite()) || !(full_scale >= 1.0 && full_scale.is_finite()) {
+        anyhow::bail!("--q must be > 0, --sigma >= 0 and --full-scale >= 1 (got q {q}, sigma {sigma}, full scale {full_scale})");
+    }
+    Ok(crate::optics::degrade::NoiseModel { q, sigma, full_scale })
+}
+
+fn psf_command(c: PsfCommand) -> Result<()> {
+    use crate::optics::{blur_index, lens::Lens, psf, psf_set::PsfSet};
+    match c {
+        PsfCommand::Simulate { lens, out, grid, kernel } => {
+            let lens = Lens::load(&lens)?;
+            let (rows, cols) = pair(&grid, "--grid")?;
+            if kernel % 2 == 0 || !(3..=127).contains(&kernel) {
+                anyhow::bail!("--kernel {kernel} must be odd and in 3..127");
+            }
+            let t = std::time::Instant::now();
+            let (regions, kernels) = psf::simulate(&lens, rows, cols, kernel);
+            let set = PsfSet { rows, cols, k: kernel, kernels };
+            set.save(&out, &lens, &regions)?;
+            let st = set.stats();
+            let (lo, hi) = st.iter().fold((f64::MAX, f64::MIN), |(a, b), s| (a.min(s.rms_radius), b.max(s.rms_radius)));
+            println!("{} PSFs ({rows}x{cols}, {kernel}x{kernel}) for '{}' in {:.2} s -> {}; RMS spot radius {lo:.2}-{hi:.2} px", rows * cols, lens.name, t.elapsed().as_secs_f64(), out.display());
+        }
+        PsfCommand::BlurMap { dir, out } => {
+            let set = PsfSet::load(&dir)?;
+            let map = blur_index::blur_map(&set.stats(), set.rows, set.cols);
+            let ext = out.extension().and_then(|e| e.to_str()).map(str::to_string);
+            let npy = || crate::fsutil::write_atomic(&out.with_extension("npy"), &crate::optics::npy::to_bytes(&[map.rows, map.cols], &map.values));
+            let yaml = || crate::fsutil::write_atomic(&out.with_extension("yaml"), map.to_yaml().as_bytes());
+            match ext.as_deref() {
+                Some("npy") => npy()?,
+                Some("yaml" | "yml") => yaml()?,
+                None => { npy()?; yaml()?; }
+                Some(e) => anyhow::bail!("blur map files are .npy or .yaml, not .{e}"),
+            }
+            println!("blur map {}x{} -> {}", map.rows, map.cols, out.display());
+        }
+    }
+    Ok(())
 }

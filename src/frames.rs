@@ -30,26 +30,40 @@ pub fn load_folder(dir: &Path, height: usize, width: usize) -> Result<Vec<Frame>
 }
 
 fn load_frame(path: &Path, height: usize, width: usize) -> Result<Frame> {
-    let (w, h, data) = if path.extension().is_some_and(|e| e == "npy") {
-        let a = npy::read(path)?;
-        let dims: Vec<usize> = a.shape.iter().copied().filter(|&d| d != 1).collect();
-        let [h, w] = dims[..] else { bail!("expected a [H, W] array, got {:?}", a.shape) };
-        (w, h, a.data)
-    } else {
-        let img = image::open(path).map_err(|e| anyhow!("cannot decode image: {e}"))?;
-        let (w, h) = (img.width() as usize, img.height() as usize);
-        let data: Vec<f32> = match img {
-            image::DynamicImage::ImageLuma8(b) => b.into_raw().iter().map(|&v| v as f32 / 255.0).collect(),
-            image::DynamicImage::ImageLuma16(b) => b.into_raw().iter().map(|&v| v as f32 / 65535.0).collect(),
-            other => other.to_luma32f().into_raw(),
-        };
-        (w, h, data)
-    };
+    let (w, h, data) = read_gray(path)?;
     if (w, h) != (width, height) {
         bail!("frame is {w}x{h} but the model takes {width}x{height}; rescale the frames first");
     }
     let labels = read_yolo_labels(&path.with_extension("txt"), width as f32, height as f32)?;
     Ok(Frame { name: path.file_name().unwrap_or_default().to_string_lossy().into_owned(), image: Tensor::f32(vec![1, 1, h, w], data), labels })
+}
+
+/// A grayscale frame as (width, height, values in [0, 1]): 8/16-bit PNG or TIFF (by full
+/// scale of the bit depth), or a float `.npy` [H, W] taken as is.
+pub fn read_gray(path: &Path) -> Result<(usize, usize, Vec<f32>)> {
+    if path.extension().is_some_and(|e| e == "npy") {
+        let a = npy::read(path)?;
+        let dims: Vec<usize> = a.shape.iter().copied().filter(|&d| d != 1).collect();
+        let [h, w] = dims[..] else { bail!("expected a [H, W] array, got {:?}", a.shape) };
+        return Ok((w, h, a.data));
+    }
+    let img = image::open(path).map_err(|e| anyhow!("cannot decode image: {e}"))?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let data: Vec<f32> = match img {
+        image::DynamicImage::ImageLuma8(b) => b.into_raw().iter().map(|&v| v as f32 / 255.0).collect(),
+        image::DynamicImage::ImageLuma16(b) => b.into_raw().iter().map(|&v| v as f32 / 65535.0).collect(),
+        other => other.to_luma32f().into_raw(),
+    };
+    Ok((w, h, data))
+}
+
+/// Writes values in [0, 1] as a 16-bit grayscale PNG, atomically.
+pub fn write_gray16(path: &Path, w: usize, h: usize, data: &[f32]) -> Result<()> {
+    let px: Vec<u16> = data.iter().map(|&v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16).collect();
+    let img = image::ImageBuffer::<image::Luma<u16>, _>::from_raw(w as u32, h as u32, px).ok_or_else(|| anyhow!("bad image size"))?;
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png).map_err(|e| anyhow!("cannot encode {}: {e}", path.display()))?;
+    crate::fsutil::write_atomic(path, &out.into_inner())
 }
 
 /// `class cx cy w h` per line, normalized to [0, 1]; None when the file does not exist.

@@ -7,6 +7,7 @@
 pub mod analysis;
 pub mod cli;
 pub mod compile;
+pub mod dataset;
 pub mod detect;
 pub mod metrics;
 pub mod frames;
