@@ -59,6 +59,9 @@ pub enum Command {
         size: String,
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        /// Leave boxes with a side under this many pixels unlabelled.
+        #[arg(long, default_value_t = 0.0)]
+        min_box: f32,
     },
     /// Single-lens degradation of an image or folder: spatially varying PSF blur, noise, quantization.
     Degrade {
@@ -97,6 +100,9 @@ pub enum Command {
         size: String,
         #[arg(long, default_value_t = 90.0)]
         q: f64,
+        /// Synthetic frames only: leave boxes with a side under this many pixels unlabelled.
+        #[arg(long, default_value_t = 0.0)]
+        min_box: f32,
         #[arg(long, default_value_t = 2.0)]
         sigma: f64,
         #[arg(long, default_value_t = 0)]
@@ -201,9 +207,9 @@ pub fn run(cli: Cli) -> Result<u8> {
             }
         }
         Command::Psf { command } => psf_command(command)?,
-        Command::Synth { out, n, size, seed } => {
+        Command::Synth { out, n, size, seed, min_box } => {
             let (w, h) = pair(&size, "--size")?;
-            let boxes = crate::dataset::write_synthetic(&out, n, w, h, seed)?;
+            let boxes = crate::dataset::write_synthetic(&out, n, w, h, seed, min_box)?;
             println!("wrote {n} scenes ({boxes} labelled objects) at {w}x{h} to {}", out.display());
         }
         Command::Degrade { input, output, psf, q, sigma, seed, full_scale } => {
@@ -212,7 +218,7 @@ pub fn run(cli: Cli) -> Result<u8> {
             let s = crate::dataset::degrade_path(&input, &output, &set, noise, seed)?;
             println!("degraded {} frame(s), q {q}, sigma {sigma}: PSNR {:.2} dB against clean (blur alone {:.2} dB)", s.frames, s.psnr_db, s.blur_psnr_db);
         }
-        Command::Dataset { out, psf, from, coco, n, size, q, sigma, seed } => {
+        Command::Dataset { out, psf, from, coco, n, size, q, min_box, sigma, seed } => {
             let (w, h) = pair(&size, "--size")?;
             let noise = noise_model(q, sigma, crate::optics::degrade::FULL_SCALE_14BIT)?;
             let set = crate::optics::psf_set::PsfSet::load(&psf)?;
@@ -220,7 +226,7 @@ pub fn run(cli: Cli) -> Result<u8> {
             let clean = out.join("clean");
             let boxes = match &from {
                 Some(dir) => crate::dataset::import_folder(dir, &clean, w, h, coco.as_deref())?,
-                None => crate::dataset::write_synthetic(&clean, n, w, h, seed)?,
+                None => crate::dataset::write_synthetic(&clean, n, w, h, seed, min_box)?,
             };
             let s = crate::dataset::degrade_path(&clean, &out.join("degraded"), &set, noise, seed)?;
             let summary = serde_json::json!({ "source": from.as_ref().map_or("synthetic".to_string(), |p| p.display().to_string()), "size": [w, h], "labelled_objects": boxes, "psf": psf.display().to_string(), "degrade": s, "seed": seed });

@@ -24,13 +24,16 @@ fn progress(n: usize, what: &str) -> ProgressBar {
 }
 
 /// Writes `n` synthetic scenes (`000000.png` 16-bit + `000000.txt` YOLO labels) to `out`.
-pub fn write_synthetic(out: &Path, n: usize, width: usize, height: usize, seed: u64) -> Result<usize> {
+/// Boxes with a side under `min_box` pixels are left unlabelled (for training sets that will
+/// be downscaled: a 4-pixel target is noise at 256x192).
+pub fn write_synthetic(out: &Path, n: usize, width: usize, height: usize, seed: u64, min_box: f32) -> Result<usize> {
     ensure_dir(out)?;
     write_atomic(&out.join("classes.txt"), (CLASSES.join("\n") + "\n").as_bytes())?;
     let pb = progress(n, "synth");
     let boxes = Mutex::new(0usize);
     (0..n).into_par_iter().try_for_each(|i| -> Result<()> {
-        let s = synth::scene(width, height, seed.wrapping_mul(1_000_003).wrapping_add(i as u64));
+        let mut s = synth::scene(width, height, seed.wrapping_mul(1_000_003).wrapping_add(i as u64));
+        s.labels.retain(|t| t.bbox[2] - t.bbox[0] >= min_box && t.bbox[3] - t.bbox[1] >= min_box);
         write_gray16(&out.join(format!("{i:06}.png")), width, height, &s.pixels)?;
         write_atomic(&out.join(format!("{i:06}.txt")), yolo_text(&s.labels, width, height).as_bytes())?;
         *boxes.lock().expect("no poisoning") += s.labels.len();

@@ -212,3 +212,15 @@ fn coco_folder_is_rescaled_with_its_boxes() {
     assert_eq!((w, h), (640, 480));
     assert!((px[240 * 640 + 320] - 0.5).abs() < 0.01, "area resampling keeps the ramp: {}", px[240 * 640 + 320]);
 }
+
+#[test]
+fn committed_blur_maps_are_current() {
+    for (lens, map) in [("calib/lens_single_lwir.yaml", "calib/single_lwir_blur.npy"), ("calib/lens_multi_lwir.yaml", "calib/multi_lwir_blur.npy")] {
+        let lens = Lens::load(&repo().join(lens)).unwrap();
+        let (_, kernels) = simulate(&lens, 6, 8, 31);
+        let fresh = blur_map(&kernels.iter().map(|k| spot_stats(k, 31)).collect::<Vec<_>>(), 6, 8);
+        let committed = pdi_compile::optics::blur_map::BlurMap::load(&repo().join(map)).unwrap();
+        let worst = fresh.values.iter().zip(&committed.values).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        assert!(worst < 1e-4, "{map} is stale (max diff {worst}); regenerate it as calib/README.md says");
+    }
+}

@@ -297,6 +297,9 @@ class DetectV5(nn.Module):
             x = self.m[i](x)
             bs, _, ny, nx = x.shape
             x = x.view(bs, self.na, self.no, ny, nx).permute(0, 1, 3, 4, 2).contiguous()
+            if self.training:  # raw maps for the loss: [bs, na, ny, nx, 5 + nc]
+                out.append(x)
+                continue
             gx, gy = make_grid(ny, nx)
             grid = torch.stack((gx, gy), 2).view(1, 1, ny, nx, 2) - 0.5
             anchor_grid = self.anchors[i].view(1, self.na, 1, 1, 2)
@@ -304,7 +307,7 @@ class DetectV5(nn.Module):
             xy = (xy * 2 + grid) * STRIDES[i]
             wh = (wh * 2) ** 2 * anchor_grid
             out.append(torch.cat((xy, wh, conf), 4).view(bs, self.na * nx * ny, self.no))
-        return torch.cat(out, 1)
+        return out if self.training else torch.cat(out, 1)
 
 
 class DFL(nn.Module):
