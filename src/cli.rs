@@ -103,6 +103,9 @@ pub enum Command {
         /// Synthetic frames only: leave boxes with a side under this many pixels unlabelled.
         #[arg(long, default_value_t = 0.0)]
         min_box: f32,
+        /// Area-downscale clean and degraded frames to WIDTHxHEIGHT after degrading at --size.
+        #[arg(long)]
+        out_size: Option<String>,
         #[arg(long, default_value_t = 2.0)]
         sigma: f64,
         #[arg(long, default_value_t = 0)]
@@ -218,7 +221,8 @@ pub fn run(cli: Cli) -> Result<u8> {
             let s = crate::dataset::degrade_path(&input, &output, &set, noise, seed)?;
             println!("degraded {} frame(s), q {q}, sigma {sigma}: PSNR {:.2} dB against clean (blur alone {:.2} dB)", s.frames, s.psnr_db, s.blur_psnr_db);
         }
-        Command::Dataset { out, psf, from, coco, n, size, q, min_box, sigma, seed } => {
+        Command::Dataset { out, psf, from, coco, n, size, q, min_box, out_size, sigma, seed } => {
+            let out_size = out_size.map(|s| pair(&s, "--out-size")).transpose()?;
             let (w, h) = pair(&size, "--size")?;
             let noise = noise_model(q, sigma, crate::optics::degrade::FULL_SCALE_14BIT)?;
             let set = crate::optics::psf_set::PsfSet::load(&psf)?;
@@ -229,7 +233,11 @@ pub fn run(cli: Cli) -> Result<u8> {
                 None => crate::dataset::write_synthetic(&clean, n, w, h, seed, min_box)?,
             };
             let s = crate::dataset::degrade_path(&clean, &out.join("degraded"), &set, noise, seed)?;
-            let summary = serde_json::json!({ "source": from.as_ref().map_or("synthetic".to_string(), |p| p.display().to_string()), "size": [w, h], "labelled_objects": boxes, "psf": psf.display().to_string(), "degrade": s, "seed": seed });
+            if let Some((ow, oh)) = out_size {
+                crate::dataset::resize_folder(&clean, ow, oh)?;
+                crate::dataset::resize_folder(&out.join("degraded"), ow, oh)?;
+            }
+            let summary = serde_json::json!({ "source": from.as_ref().map_or("synthetic".to_string(), |p| p.display().to_string()), "size": [w, h], "out_size": out_size, "min_box": min_box, "labelled_objects": boxes, "psf": psf.display().to_string(), "degrade": s, "seed": seed });
             crate::fsutil::write_atomic(&out.join("dataset.yaml"), yaml_serde::to_string(&summary)?.as_bytes())?;
             println!("dataset {}: {} frames, {boxes} objects; degraded PSNR {:.2} dB", out.display(), s.frames, s.psnr_db);
         }

@@ -207,3 +207,17 @@ pub fn import_folder(input: &Path, out: &Path, width: usize, height: usize, coco
     pb.finish_and_clear();
     Ok(boxes.into_inner().expect("no poisoning"))
 }
+
+/// Area-downscales every PNG of `dir` in place to `width x height` (YOLO labels are
+/// normalized and stay valid). Frames are simulated at sensor size so PSFs keep their
+/// physical pixel scale; training at a smaller size resamples afterwards, like a camera
+/// pipeline that bins its output.
+pub fn resize_folder(dir: &Path, width: usize, height: usize) -> Result<()> {
+    image_files(dir)?.par_iter().try_for_each(|f| -> Result<()> {
+        let (w, h, px) = read_gray(f)?;
+        if (w, h) != (width, height) {
+            write_gray16(f, width, height, &resize_area(&px, w, h, width, height))?;
+        }
+        Ok(())
+    })
+}

@@ -5,7 +5,7 @@ use crate::metrics::coco_map::Truth;
 use crate::optics::npy;
 use crate::tensor::Tensor;
 use anyhow::{anyhow, bail, Context, Result};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 pub struct Frame {
     pub name: String,
@@ -17,16 +17,8 @@ pub struct Frame {
 
 /// Frames from `dir`, each `height x width` (the model's input size).
 pub fn load_folder(dir: &Path, height: usize, width: usize) -> Result<Vec<Frame>> {
-    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
-        .with_context(|| format!("cannot read frame folder {}", dir.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| matches!(p.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref(), Some("png" | "tif" | "tiff" | "npy")))
-        .collect();
-    files.sort();
-    if files.is_empty() {
-        bail!("{} holds no .png, .tif or .npy frames", dir.display());
-    }
-    files.iter().map(|f| load_frame(f, height, width).with_context(|| format!("{}", f.display()))).collect()
+    crate::dataset::image_files(dir)?
+        .iter().map(|f| load_frame(f, height, width).with_context(|| format!("{}", f.display()))).collect()
 }
 
 fn load_frame(path: &Path, height: usize, width: usize) -> Result<Frame> {

@@ -48,6 +48,16 @@ struct Canvas<'a> {
 }
 
 impl Canvas<'_> {
+    /// Mixes temperature t into pixel i with coverage a; the pixel belongs to `id` when mostly covered.
+    fn blend(&mut self, i: usize, a: f64, t: f64, id: u16) {
+        if a > 0.0 {
+            self.px[i] = (self.px[i] as f64 * (1.0 - a) + t * a) as f32;
+            if a >= 0.5 {
+                self.owner[i] = id;
+            }
+        }
+    }
+
     /// Draws an axis-aligned box (rounded by `round` px) of temperature t, owned by `id`.
     fn rect(&mut self, x0: f64, y0: f64, x1: f64, y1: f64, t: f64, id: u16) {
         let (xa, xb) = ((x0.floor().max(0.0)) as usize, (x1.ceil().min(self.w as f64)) as usize);
@@ -56,14 +66,7 @@ impl Canvas<'_> {
             for x in xa..xb {
                 let (cx, cy) = (x as f64 + 0.5, y as f64 + 0.5);
                 let d = (x0 - cx).max(cx - x1).max(y0 - cy).max(cy - y1);
-                let a = ramp(d + 0.5);
-                if a > 0.0 {
-                    let i = y * self.w + x;
-                    self.px[i] = (self.px[i] as f64 * (1.0 - a) + t * a) as f32;
-                    if a >= 0.5 {
-                        self.owner[i] = id;
-                    }
-                }
+                self.blend(y * self.w + x, ramp(d + 0.5), t, id);
             }
         }
     }
@@ -75,14 +78,7 @@ impl Canvas<'_> {
             for x in xa..xb {
                 let (u, v) = ((x as f64 + 0.5 - cx) / rx.max(0.5), (y as f64 + 0.5 - cy) / ry.max(0.5));
                 let d = ((u * u + v * v).sqrt() - 1.0) * rx.min(ry).max(0.5);
-                let a = ramp(d + 0.5);
-                if a > 0.0 {
-                    let i = y * self.w + x;
-                    self.px[i] = (self.px[i] as f64 * (1.0 - a) + t * a) as f32;
-                    if a >= 0.5 {
-                        self.owner[i] = id;
-                    }
-                }
+                self.blend(y * self.w + x, ramp(d + 0.5), t, id);
             }
         }
     }
