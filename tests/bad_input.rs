@@ -110,3 +110,54 @@ fn bad_pipelines_and_outputs_fail_cleanly() {
     assert_eq!(r.code, 2);
     assert!(r.stderr.contains("is not a folder"), "{}", r.stderr);
 }
+
+/// Nonsense that is structurally valid must not crash shape inference: inspect answers
+/// (possibly with unknown shapes), never with an internal error.
+#[test]
+fn hostile_shapes_do_not_crash_inspect() {
+    let dir = tempfile::tempdir().unwrap();
+    let ints = |name: &str, v: Vec<i64>| AttributeProto { name: name.into(), r#type: AttributeType::Ints as i32, ints: v, ..Default::default() };
+    let int = |name: &str, v: i64| AttributeProto { name: name.into(), r#type: AttributeType::Int as i32, i: Some(v), ..Default::default() };
+    let i64s = |name: &str, v: Vec<i64>| pdi_compile::onnx::tensor_proto::from_tensor(name, &pdi_compile::tensor::Tensor::new(vec![v.len()], pdi_compile::tensor::TensorData::I64(v)));
+    let scalar = TensorProto { name: "s".into(), data_type: 1, raw_data: 1f32.to_le_bytes().to_vec(), ..Default::default() };
+    let mut nodes = vec![
+        NodeProto { op_type: "Concat".into(), input: vec!["s".into(), "s".into()], output: vec!["c".into()], attribute: vec![int("axis", 5)], ..Default::default() },
+        NodeProto { op_type: "Conv".into(), input: vec!["x".into(), "w1".into()], output: vec!["v".into()], ..Default::default() },
+        NodeProto { op_type: "DepthToSpace".into(), input: vec!["x".into()], output: vec!["d".into()], attribute: vec![int("blocksize", 0)], ..Default::default() },
+        NodeProto { op_type: "Div".into(), input: vec!["min".into(), "neg".into()], output: vec!["q".into()], ..Default::default() },
+        NodeProto { op_type: "Slice".into(), input: vec!["x".into(), "st".into(), "en".into(), "ax".into()], output: vec!["sl".into()], ..Default::default() },
+        NodeProto { op_type: "Squeeze".into(), input: vec!["x".into(), "ax".into()], output: vec!["sq".into()], ..Default::default() },
+        NodeProto { op_type: "MatMul".into(), input: vec!["s".into(), "s".into()], output: vec!["mm".into()], ..Default::default() },
+        NodeProto { op_type: "ConvTranspose".into(), input: vec!["x".into(), "w4".into()], output: vec!["ct".into()], attribute: vec![ints("strides", vec![2])], ..Default::default() },
+    ];
+    for (i, n) in nodes.iter_mut().enumerate() {
+        n.name = format!("n{i}");
+    }
+    let outputs: Vec<String> = nodes.iter().map(|n| n.output[0].clone()).collect();
+    let m = ModelProto {
+        ir_version: 8,
+        opset_import: vec![OperatorSetIdProto { domain: String::new(), version: 17 }],
+        graph: Some(GraphProto {
+            node: nodes,
+            input: vec![f32_input("x", &[1, 3, 8, 8])],
+            output: outputs.iter().map(|o| ValueInfoProto { name: o.clone(), ..Default::default() }).collect(),
+            initializer: vec![
+                scalar,
+                TensorProto { name: "w1".into(), dims: vec![3], data_type: 1, raw_data: vec![0; 12], ..Default::default() },
+                TensorProto { name: "w4".into(), dims: vec![3, 1, 2, 2], data_type: 1, raw_data: vec![0; 48], ..Default::default() },
+                i64s("min", vec![i64::MIN]),
+                i64s("neg", vec![-1]),
+                i64s("st", vec![0, 0]),
+                i64s("en", vec![1]),
+                i64s("ax", vec![9]),
+            ],
+            ..Default::default()
+        }),
+        ..Default::default()
+    };
+    let p = dir.path().join("hostile.onnx");
+    std::fs::write(&p, m.encode_to_vec()).unwrap();
+    let r = cli(&["inspect", p.to_str().unwrap(), "--json"]);
+    assert!(!r.stderr.contains("internal error") && !r.stderr.contains("panicked"), "{}", r.stderr);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+}

@@ -142,7 +142,7 @@ fn infer_node(node: &NodeProto, cx: &mut Inferred) -> bool {
             "Constant" => vec![constant(node, cx)],
             "ConstantOfShape" => vec![constant_of_shape(node, ints(0), cx)],
             "Expand" => vec![ValueType { dtype: x.dtype, shape: ints(1).and_then(|s| broadcast(x.shape.as_ref()?, &s)) }],
-            "Tile" => vec![ValueType { dtype: x.dtype, shape: x.shape.as_ref().zip(ints(1)).map(|(s, r)| s.iter().zip(&r).map(|(&a, &b)| if a < 0 { -1 } else { a * b }).collect()) }],
+            "Tile" => vec![ValueType { dtype: x.dtype, shape: x.shape.as_ref().zip(ints(1)).map(|(s, r)| s.iter().zip(&r).map(|(&a, &b)| if a < 0 { -1 } else { a.saturating_mul(b) }).collect()) }],
             "Pad" => vec![pad(node, &x, ints(1))],
             "Range" => vec![range(node, cx)],
             "DepthToSpace" | "SpaceToDepth" => vec![depth_space(node, &x)],
@@ -167,8 +167,10 @@ fn infer_node(node: &NodeProto, cx: &mut Inferred) -> bool {
     true
 }
 
-fn norm_axis(a: i64, rank: usize) -> usize {
-    (if a < 0 { a + rank as i64 } else { a }).clamp(0, rank.max(1) as i64 - if rank == 0 { 0 } else { 1 }) as usize
+/// `a` as an index into `rank` dimensions (negative counts from the end); None when out of range.
+fn norm_axis(a: i64, rank: usize) -> Option<usize> {
+    let a = if a < 0 { a + rank as i64 } else { a };
+    (0..rank as i64).contains(&a).then_some(a as usize)
 }
 
 fn broadcast(a: &[i64], b: &[i64]) -> Option<Vec<i64>> {
@@ -235,9 +237,12 @@ fn window_out(node: &NodeProto, x: &[i64], kernel: &[i64], ceil: bool) -> Vec<i6
 fn conv(node: &NodeProto, x: &ValueType, w: &ValueType, op: &str) -> ValueType {
     let dtype = match op { "Conv" => x.dtype, "ConvInteger" => Some(DType::I32), _ => None };
     let shape = (|| {
-        let xs = x.shape.as_ref()?;
-        let ws = w.shape.as_ref()?;
+        let xs = x.shape.as_ref().filter(|s| s.len() >= 3)?;
+        let ws = w.shape.as_ref().filter(|s| s.len() == xs.len())?;
         let kernel = attr::ints(node, "kernel_shape").unwrap_or_else(|| ws[2..].to_vec());
+        if kernel.len() != xs.len() - 2 {
+            return None;
+        }
         let mut out = vec![xs[0], ws[0]];
         out.extend(window_out(node, xs, &kernel, false));
         Some(out)
@@ -247,8 +252,8 @@ fn conv(node: &NodeProto, x: &ValueType, w: &ValueType, op: &str) -> ValueType {
 
 fn conv_transpose(node: &NodeProto, x: &ValueType, w: &ValueType) -> ValueType {
     let shape = (|| {
-        let xs = x.shape.as_ref()?;
-        let ws = w.shape.as_ref()?;
+        let xs = x.shape.as_ref().filter(|s| s.len() >= 3)?;
+        let ws = w.shape.as_ref().filter(|s| s.len() == xs.len())?;
         let n = ws.len().checked_sub(2)?;
         let group = attr::int(node, "group", 1);
         let mut out = vec![xs[0], ws[1] * group];
@@ -261,6 +266,9 @@ fn conv_transpose(node: &NodeProto, x: &ValueType, w: &ValueType) -> ValueType {
         let d = attr::ints(node, "dilations").unwrap_or_else(|| vec![1; n]);
         let p = attr::ints(node, "pads").unwrap_or_else(|| vec![0; 2 * n]);
         let op = attr::ints(node, "output_padding").unwrap_or_else(|| vec![0; n]);
+        if k.len() < n || s.len() < n || d.len() < n || p.len() < 2 * n || op.len() < n {
+            return None;
+        }
         let auto = attr::string(node, "auto_pad", "NOTSET");
         for i in 0..n {
             let inp = *xs.get(2 + i)?;
@@ -291,7 +299,7 @@ fn concat(node: &NodeProto, ins: &[ValueType]) -> ValueType {
     let dtype = ins.iter().find_map(|t| t.dtype);
     let shape = (|| {
         let first = ins.first()?.shape.clone()?;
-        let axis = norm_axis(attr::int(node, "axis", 0), first.len());
+        let axis = norm_axis(attr::int(node, "axis", 0), first.len())?;
         let mut out = first;
         out[axis] = 0;
         for t in ins {
@@ -306,7 +314,7 @@ fn concat(node: &NodeProto, ins: &[ValueType]) -> ValueType {
 fn split(node: &NodeProto, x: &ValueType, split_input: Option<Vec<i64>>) -> Vec<ValueType> {
     let n = node.output.len();
     let Some(xs) = x.shape.as_ref() else { return vec![ValueType { dtype: x.dtype, shape: None }; n] };
-    let axis = norm_axis(attr::int(node, "axis", 0), xs.len());
+    let Some(axis) = norm_axis(attr::int(node, "axis", 0), xs.len()) else { return vec![ValueType { dtype: x.dtype, shape: None }; n] };
     let total = xs[axis];
     let sizes: Vec<i64> = split_input.or_else(|| attr::ints(node, "split")).unwrap_or_else(|| {
         if total < 0 {
@@ -337,22 +345,22 @@ fn slice(node: &NodeProto, x: &ValueType, starts: Option<Vec<i64>>, ends: Option
         let steps = if !legacy && node.input.get(4).is_some_and(|s| !s.is_empty()) { steps? } else { vec![1; starts.len()] };
         let mut out = xs.clone();
         for i in 0..starts.len() {
-            let a = norm_axis(axes[i], xs.len());
+            let a = norm_axis(*axes.get(i)?, xs.len())?;
             let dim = xs[a];
             if dim < 0 {
                 out[a] = -1;
                 continue;
             }
-            let step = steps[i];
+            let step = *steps.get(i)?;
             if step == 0 {
                 return None;
             }
             let clampi = |v: i64, lo: i64, hi: i64| v.clamp(lo, hi);
             let fix = |v: i64| if v < 0 { v + dim } else { v };
             let (s, e) = if step > 0 {
-                (clampi(fix(starts[i]), 0, dim), clampi(fix(ends[i]), 0, dim))
+                (clampi(fix(starts[i]), 0, dim), clampi(fix(*ends.get(i)?), 0, dim))
             } else {
-                (clampi(fix(starts[i]), -1, dim - 1), clampi(fix(ends[i]), -1, dim - 1))
+                (clampi(fix(starts[i]), -1, dim - 1), clampi(fix(*ends.get(i)?), -1, dim - 1))
             };
             out[a] = if step > 0 { ((e - s + step - 1) / step).max(0) } else { ((s - e + (-step) - 1) / (-step)).max(0) };
         }
@@ -389,7 +397,10 @@ fn resize(node: &NodeProto, x: &ValueType, cx: &Inferred) -> ValueType {
     let shape = (|| {
         let xs = x.shape.as_ref()?;
         let (scales_i, sizes_i) = if node.op_type == "Upsample" || node.input.len() == 2 { (1, usize::MAX) } else { (2, 3) };
-        let axes: Vec<usize> = attr::ints(node, "axes").map(|a| a.iter().map(|&v| norm_axis(v, xs.len())).collect()).unwrap_or_else(|| (0..xs.len()).collect());
+        let axes: Vec<usize> = match attr::ints(node, "axes") {
+            Some(a) => a.iter().map(|&v| norm_axis(v, xs.len())).collect::<Option<_>>()?,
+            None => (0..xs.len()).collect(),
+        };
         if let Some(sizes) = get(sizes_i).and_then(|t| t.as_i64s()).filter(|s| !s.is_empty()) {
             let mut out = xs.clone();
             for (k, &a) in axes.iter().enumerate() {
@@ -432,7 +443,7 @@ fn gemm(node: &NodeProto, a: &ValueType, b: &ValueType) -> ValueType {
 
 fn matmul(a: &ValueType, b: &ValueType, op: &str) -> ValueType {
     let shape = (|| {
-        let (mut a, mut b) = (a.shape.clone()?, b.shape.clone()?);
+        let (mut a, mut b) = (a.shape.clone().filter(|s| !s.is_empty())?, b.shape.clone().filter(|s| !s.is_empty())?);
         let (va, vb) = (a.len() == 1, b.len() == 1);
         if va { a.insert(0, 1) }
         if vb { b.push(1) }
@@ -455,13 +466,13 @@ fn reduce(node: &NodeProto, x: &ValueType, axes_input: Option<Vec<i64>>) -> Valu
 
 fn reduce_axes(node: &NodeProto, x: &ValueType, axes: Option<Vec<i64>>) -> ValueType {
     let keep = attr::int(node, "keepdims", 1) != 0;
-    let shape = x.shape.as_ref().map(|xs| {
+    let shape = x.shape.as_ref().and_then(|xs| {
         let axes: Vec<usize> = match axes.filter(|a| !a.is_empty()) {
-            Some(a) => a.iter().map(|&v| norm_axis(v, xs.len())).collect(),
+            Some(a) => a.iter().map(|&v| norm_axis(v, xs.len())).collect::<Option<_>>()?,
             None if attr::int(node, "noop_with_empty_axes", 0) != 0 => vec![],
             None => (0..xs.len()).collect(),
         };
-        xs.iter().enumerate().filter_map(|(i, &d)| if axes.contains(&i) { keep.then_some(1) } else { Some(d) }).collect()
+        Some(xs.iter().enumerate().filter_map(|(i, &d)| if axes.contains(&i) { keep.then_some(1) } else { Some(d) }).collect())
     });
     ValueType { dtype: x.dtype, shape }
 }
@@ -482,7 +493,7 @@ fn gather(node: &NodeProto, x: &ValueType, idx: &ValueType, cx: &mut Inferred) -
     let shape = (|| {
         let xs = x.shape.as_ref()?;
         let is = idx.shape.as_ref()?;
-        let a = norm_axis(attr::int(node, "axis", 0), xs.len());
+        let a = norm_axis(attr::int(node, "axis", 0), xs.len())?;
         let mut out = xs[..a].to_vec();
         out.extend(is);
         out.extend(&xs[a + 1..]);
@@ -512,7 +523,7 @@ fn unsqueeze(node: &NodeProto, x: &ValueType, axes_in: Option<Vec<i64>>, cx: &mu
         let xs = x.shape.as_ref()?;
         let axes = axes_of(node, axes_in)?;
         let r = xs.len() + axes.len();
-        let mut ax: Vec<usize> = axes.iter().map(|&a| norm_axis(a, r)).collect();
+        let mut ax: Vec<usize> = axes.iter().map(|&a| norm_axis(a, r)).collect::<Option<_>>()?;
         ax.sort();
         let mut out = xs.clone();
         for a in ax {
@@ -525,12 +536,12 @@ fn unsqueeze(node: &NodeProto, x: &ValueType, axes_in: Option<Vec<i64>>, cx: &mu
 }
 
 fn squeeze(node: &NodeProto, x: &ValueType, axes_in: Option<Vec<i64>>, cx: &mut Inferred) -> ValueType {
-    let shape = x.shape.as_ref().map(|xs| match axes_of(node, axes_in) {
+    let shape = x.shape.as_ref().and_then(|xs| match axes_of(node, axes_in) {
         Some(a) => {
-            let ax: Vec<usize> = a.iter().map(|&v| norm_axis(v, xs.len())).collect();
-            xs.iter().enumerate().filter(|(i, _)| !ax.contains(i)).map(|(_, &d)| d).collect()
+            let ax: Vec<usize> = a.iter().map(|&v| norm_axis(v, xs.len())).collect::<Option<_>>()?;
+            Some(xs.iter().enumerate().filter(|(i, _)| !ax.contains(i)).map(|(_, &d)| d).collect())
         }
-        None => xs.iter().copied().filter(|&d| d != 1).collect(),
+        None => Some(xs.iter().copied().filter(|&d| d != 1).collect()),
     });
     reshape_const(node, &shape, cx);
     ValueType { dtype: x.dtype, shape }
@@ -575,7 +586,7 @@ fn constant_of_shape(node: &NodeProto, shape: Option<Vec<i64>>, cx: &mut Inferre
     let value = attr::tensor(node, "value").and_then(|t| to_tensor(t).ok());
     let dtype = value.as_ref().map_or(DType::F32, |v| v.dtype());
     if let (Some(s), Some(v)) = (&shape, &value) {
-        let n: i64 = s.iter().product();
+        let n: i64 = s.iter().try_fold(1i64, |a, &d| a.checked_mul(d)).unwrap_or(-1);
         if (0..=MAX_CONST_ELEMS as i64).contains(&n) {
             if let Some(fill) = v.as_i64s().and_then(|f| f.first().copied()) {
                 let data = TensorData::I64(vec![fill; n as usize]);
@@ -618,7 +629,7 @@ fn range(node: &NodeProto, cx: &mut Inferred) -> ValueType {
 
 fn depth_space(node: &NodeProto, x: &ValueType) -> ValueType {
     let b = attr::int(node, "blocksize", 1);
-    let shape = x.shape.as_ref().filter(|s| s.len() == 4 && s.iter().all(|&d| d >= 0)).map(|s| {
+    let shape = x.shape.as_ref().filter(|s| b > 0 && s.len() == 4 && s.iter().all(|&d| d >= 0)).map(|s| {
         if node.op_type == "DepthToSpace" { vec![s[0], s[1] / (b * b), s[2] * b, s[3] * b] } else { vec![s[0], s[1] * b * b, s[2] / b, s[3] / b] }
     });
     ValueType { dtype: x.dtype, shape }
@@ -710,7 +721,7 @@ fn int_elementwise(op: &str, ts: &[Tensor]) -> Option<Tensor> {
             "Add" => a.wrapping_add(b),
             "Sub" => a.wrapping_sub(b),
             "Mul" => a.wrapping_mul(b),
-            "Div" => if b == 0 { return None } else { a / b }, // ONNX integer Div truncates, like Rust
+            "Div" => a.checked_div(b)?, // ONNX integer Div truncates, like Rust; /0 and MIN/-1 stay unknown
             "Equal" => (a == b) as i64,
             "Where" => if a != 0 { b } else { at(&vals[2], i) },
             _ => return None,

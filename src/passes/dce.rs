@@ -47,11 +47,9 @@ pub fn eliminate(g: &mut GraphProto) -> Result<(usize, usize, usize)> {
     g.initializer.retain(|t| !removed.contains(&t.name));
     // Old-style models also list initializers as inputs: such an entry goes with its initializer.
     g.input.retain(|v| !removed.contains(&v.name));
-    let mut known: HashSet<&str> = g.node.iter().flat_map(|n| n.output.iter().map(|s| s.as_str())).collect();
-    known.extend(g.initializer.iter().map(|t| t.name.as_str()));
+    let mut known: HashSet<String> = g.node.iter().flat_map(|n| n.output.iter().cloned()).collect();
+    known.extend(g.initializer.iter().map(|t| t.name.clone()));
     let before = g.value_info.len();
-    let keep: Vec<bool> = g.value_info.iter().map(|v| known.contains(v.name.as_str())).collect();
-    let mut k = keep.iter();
-    g.value_info.retain(|_| *k.next().expect("one flag per entry"));
+    g.value_info.retain(|v| known.contains(&v.name));
     Ok((dead.len(), removed.len(), before - g.value_info.len()))
 }

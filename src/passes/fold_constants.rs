@@ -132,8 +132,7 @@ fn shape_value(n: &NodeProto, inf: &crate::ir::Inferred) -> Option<crate::tensor
 fn evaluation_model(model: &ModelProto, plan: &Plan) -> ModelProto {
     let g = model.graph.as_ref().expect("checked by the pipeline");
     let mut nodes = Vec::new();
-    for (i, n) in g.node.iter().enumerate().filter(|(i, _)| plan.foldable.contains(i)) {
-        let _ = i;
+    for (_, n) in g.node.iter().enumerate().filter(|(i, _)| plan.foldable.contains(i)) {
         match plan.shape_values.get(&n.output[0]) {
             Some(t) => nodes.push(NodeProto {
                 op_type: "Constant".into(),
