@@ -80,13 +80,9 @@ pub fn degrade_path(input: &Path, output: &Path, psf: &PsfSet, noise: NoiseModel
             let mut raw = blurred.clone();
             add_noise(&mut raw, &noise, &mut Rng::new(seed.wrapping_add(i as u64)));
             write_gray16(&out_for(f), w, h, &raw)?;
-            if input.is_dir() {
-                for ext in ["txt"] {
-                    let label = f.with_extension(ext);
-                    if label.exists() {
-                        std::fs::copy(&label, out_for(f).with_extension(ext))?;
-                    }
-                }
+            let label = f.with_extension("txt");
+            if input.is_dir() && label.exists() {
+                std::fs::copy(&label, out_for(f).with_extension("txt"))?;
             }
             pb.inc(1);
             Ok((psnr(&clean, &raw), psnr(&clean, &blurred)))

@@ -8,6 +8,7 @@
 //! - folds a spatially uniform gate c into the branch's last Conv or BatchNormalization
 //!   (scaling weights and bias), or makes it a scalar where the branch ends in an activation;
 //! - keeps spatially varying gates as constant maps.
+//!
 //! Needs: constant gates (run after bind-psf and fold-constants). Guarantees: same outputs up
 //! to float rounding of the folded products. Reports: each gate's min, mean, max and action.
 
@@ -155,7 +156,7 @@ fn mark_tree(g: &GraphProto, graph: &Graph, value: &str, claimed: &mut HashSet<u
 }
 
 fn gate_values(g: &GraphProto, name: &str) -> Result<Tensor> {
-    Ok(to_tensor(initializer(g, name).ok_or_else(|| anyhow::anyhow!("gate {name} vanished"))?)?)
+    to_tensor(initializer(g, name).ok_or_else(|| anyhow::anyhow!("gate {name} vanished"))?)
 }
 
 /// gate <- eta * gate, under a fresh name (the original may be shared).

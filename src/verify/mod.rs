@@ -99,7 +99,7 @@ struct Side {
     shape: (usize, usize),
 }
 
-fn side(path: &PathBuf, what: &str) -> Result<Side> {
+fn side(path: &std::path::Path, what: &str) -> Result<Side> {
     let model = crate::onnx::load(path)?.model;
     let g = model.graph.as_ref().ok_or_else(|| anyhow!("{what} has no graph"))?;
     let graph = Graph::build(g)?;
