@@ -49,9 +49,13 @@ pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
     let loaded = onnx::load_bytes(&bytes, req.model.parent().or(Some(Path::new("."))))
         .map_err(|e| anyhow::anyhow!("{}: {e:#}", req.model.display()))?;
     let mut model = loaded.model;
-    let before = pipeline::counts(&model)?;
     let passes = pipeline::run(&recipe, &mut model, &req.context)?;
-    let after = pipeline::counts(&model)?;
+    // The runner already counted before the first pass and after each one.
+    let before = match passes.first() {
+        Some(p) => p.before,
+        None => pipeline::counts(&model)?,
+    };
+    let after = passes.last().map_or(before, |p| p.after);
 
     ensure_dir(&req.out_dir)?;
     let out_model = req.out_dir.join("model.onnx");

@@ -208,11 +208,9 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
     let detection = decodable.then(|| detection_report(&head, &frames, &ref_dets, &cand_dets, &tract_dets));
 
     let latency = {
-        let rf = feeds(&reference, &frames[0], psf.as_ref())?;
-        let cf = feeds(&candidate, &frames[0], psf.as_ref())?;
-        let mut models: Vec<(String, &mut dyn Runtime, Vec<(String, Tensor)>)> = vec![("reference/ort".into(), ref_rt.as_mut(), rf), ("candidate/ort".into(), cand_rt.as_mut(), cf.clone())];
+        let mut models: Vec<(String, &mut dyn Runtime, Vec<(String, Tensor)>)> = vec![("reference/ort".into(), ref_rt.as_mut(), first_ref), ("candidate/ort".into(), cand_rt.as_mut(), first_cand.clone())];
         if let Some(t) = tract_rt.as_mut() {
-            models.push(("candidate/tract".into(), t.as_mut(), cf));
+            models.push(("candidate/tract".into(), t.as_mut(), first_cand));
         }
         latency::interleaved(&mut models, req.latency_runs.max(1))?
     };
