@@ -37,6 +37,10 @@ pub enum Command {
         /// Outputs to keep (comma-separated), instead of recognizing the reconstruction output.
         #[arg(long, value_delimiter = ',')]
         keep_outputs: Option<Vec<String>>,
+        /// Calibration frames for pruning and quantization (8/16-bit PNG/TIFF or .npy at the
+        /// model's input size); simulated by the physics pipeline when not given.
+        #[arg(long)]
+        calib: Option<PathBuf>,
         /// Store weights in DIR/model.onnx.data instead of one self-contained file.
         #[arg(long)]
         external_data: bool,
@@ -193,8 +197,8 @@ pub fn run(cli: Cli) -> Result<u8> {
                 print!("{}", report.render());
             }
         }
-        Command::Compile { model, pipeline, out, psf, keep_outputs, external_data, json } => {
-            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib: None, keep_outputs } };
+        Command::Compile { model, pipeline, out, psf, keep_outputs, calib, external_data, json } => {
+            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib, keep_outputs } };
             let r = compile(&req)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);

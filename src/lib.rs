@@ -5,6 +5,7 @@
 //! and tract behind one interface), `inspect` and `compile` (the commands), `cli`.
 
 pub mod analysis;
+pub mod calib_frames;
 pub mod cli;
 pub mod compile;
 pub mod dataset;
@@ -18,6 +19,7 @@ pub mod onnx;
 pub mod optics;
 pub mod passes;
 pub mod pipeline;
+pub mod prune;
 pub mod runtime;
 pub mod tensor;
 pub mod verify;

@@ -275,6 +275,29 @@ impl Tensor {
         })
     }
 
+    /// The entries at positions `idx` along `axis` (a gather with constant indices), any
+    /// numeric dtype; `None` for strings or an axis out of range.
+    pub fn select(&self, axis: usize, idx: &[usize]) -> Option<Tensor> {
+        let dim = *self.shape.get(axis)?;
+        if idx.iter().any(|&i| i >= dim) {
+            return None;
+        }
+        let outer: usize = self.shape[..axis].iter().product();
+        let size = self.dtype().size_of();
+        let row = self.shape[axis + 1..].iter().product::<usize>() * size;
+        let bytes = self.data.to_le_bytes()?;
+        let mut out = Vec::with_capacity(outer * idx.len() * row);
+        for o in 0..outer {
+            for &i in idx {
+                let at = (o * dim + i) * row;
+                out.extend_from_slice(&bytes[at..at + row]);
+            }
+        }
+        let mut shape = self.shape.clone();
+        shape[axis] = idx.len();
+        Some(Tensor::new(shape, TensorData::from_le_bytes(self.dtype(), &out)))
+    }
+
     /// Bitwise equality, NaN payloads included: what "bit-identical outputs" means.
     pub fn bit_identical(&self, other: &Tensor) -> bool {
         if self.shape != other.shape || self.dtype() != other.dtype() {

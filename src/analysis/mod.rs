@@ -2,5 +2,6 @@
 //! and the detector head.
 
 pub mod bridge;
+pub mod channels;
 pub mod head;
 pub mod partition;

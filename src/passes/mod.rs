@@ -7,6 +7,7 @@ pub mod dce;
 pub mod fold_bn;
 pub mod fold_constants;
 pub mod fold_psf_gates;
+pub mod prune;
 pub mod resize_to_deconv;
 pub mod strip_recon;
 
@@ -14,7 +15,7 @@ use crate::pipeline::{Pass, PassSpec};
 use anyhow::{anyhow, bail, Result};
 
 /// Every pass this build knows, by the name recipes use.
-pub const KNOWN: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup"];
+pub const KNOWN: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "prune"];
 
 pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
     Ok(match spec.name.as_str() {
@@ -26,6 +27,7 @@ pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
         "resize-to-deconv" => Box::new(resize_to_deconv::ResizeToDeconv),
         "dce" => Box::new(dce::Dce),
         "cleanup" => Box::new(cleanup::Cleanup),
+        "prune" => Box::new(prune::Prune { options: options(spec)? }),
         other => bail!("unknown pass '{other}' in the pipeline (known passes: {})", KNOWN.join(", ")),
     })
 }

@@ -1,0 +1,66 @@
+//! Calibration frames for data-driven passes (pruning compensation, INT8 ranges): a folder
+//! of camera frames (`--calib`), or, when none is given, frames made by the physics
+//! pipeline: synthetic thermal scenes through the single-lens PSF of
+//! `calib/lens_single_lwir.yaml` plus detector noise, the degradation PDI-Net is trained on.
+
+use crate::frames::{self, Frame};
+use crate::optics::degrade::{add_noise, NoiseModel, SpatialBlur, FULL_SCALE_14BIT};
+use crate::optics::lens::Lens;
+use crate::optics::rng::Rng;
+use crate::tensor::Tensor;
+use anyhow::{anyhow, bail, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use rayon::prelude::*;
+use std::path::Path;
+
+/// The lens of the default calibration set, compiled in so the binary works anywhere.
+const DEFAULT_LENS: &str = include_str!("../calib/lens_single_lwir.yaml");
+/// Region grid and kernel size of the simulated PSFs (those of `psf simulate`'s defaults).
+const PSF_GRID: (usize, usize) = (6, 8);
+const PSF_KERNEL: usize = 31;
+/// Noise of the default set: quantization step 90 counts of a 14-bit detector, sigma 2 steps
+/// (`pdi-compile dataset`'s defaults, which made the trained model's training frames).
+const NOISE: NoiseModel = NoiseModel { q: 90.0, sigma: 2.0, full_scale: FULL_SCALE_14BIT };
+
+pub struct CalibrationSet {
+    pub frames: Vec<Frame>,
+    /// Where they came from, for reports.
+    pub source: String,
+}
+
+/// Up to `n` frames of `height x width` from `folder` (sorted by name), or `n` simulated ones.
+pub fn calibration_frames(folder: Option<&Path>, n: usize, height: usize, width: usize, seed: u64) -> Result<CalibrationSet> {
+    if n == 0 {
+        bail!("a calibration set needs at least one frame");
+    }
+    if let Some(dir) = folder {
+        let mut frames = frames::load_folder(dir, height, width)?;
+        if frames.is_empty() {
+            bail!("no frames in {} (PNG/TIFF 8/16-bit grayscale or .npy); point --calib at camera frames", dir.display());
+        }
+        frames.truncate(n);
+        let source = format!("{} frames from {}", frames.len(), dir.display());
+        return Ok(CalibrationSet { frames, source });
+    }
+    let lens: Lens = yaml_serde::from_str(DEFAULT_LENS).map_err(|e| anyhow!("built-in lens: {e}"))?;
+    let (_, kernels) = crate::optics::psf::simulate(&lens, PSF_GRID.0, PSF_GRID.1, PSF_KERNEL);
+    // Degrade at the sensor's resolution (where the PSF is defined), then area-resize to the
+    // model's input, as `pdi-compile dataset --out-size` makes training sets.
+    let [sw, sh] = lens.sensor;
+    let blur = SpatialBlur::new(&kernels, PSF_KERNEL, PSF_GRID.0, PSF_GRID.1, sh, sw);
+    let pb = ProgressBar::new(n as u64);
+    pb.set_style(ProgressStyle::with_template("calibration frames [{bar:30}] {pos}/{len}").expect("valid template").progress_chars("=> "));
+    let frames = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let s = crate::optics::synth::scene(sw, sh, seed.wrapping_mul(7919).wrapping_add(i as u64));
+            let mut img = blur.apply(&s.pixels);
+            add_noise(&mut img, &NOISE, &mut Rng::new(seed.wrapping_add(1_000 + i as u64)));
+            let img = if (sw, sh) == (width, height) { img } else { crate::dataset::resize_area(&img, sw, sh, width, height) };
+            pb.inc(1);
+            Frame { name: format!("physics_{i:04}"), image: Tensor::f32(vec![1, 1, height, width], img), labels: None }
+        })
+        .collect();
+    pb.finish_and_clear();
+    Ok(CalibrationSet { frames, source: format!("{n} physics-pipeline frames ({}, q {} sigma {}, seed {seed})", lens.name, NOISE.q, NOISE.sigma) })
+}

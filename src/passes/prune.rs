@@ -1,0 +1,201 @@
+//! `prune`: structured channel pruning with dependency groups, and training-free
+//! compensation.
+//!
+//! Needs: a detection graph with constant weights and one image input (run the lossless
+//! passes first: bind-psf, fold-constants, fold-bn). Calibration frames come from
+//! `--calib`, or from the physics pipeline when none is given (activation importance and
+//! compensation use them; magnitude importance without compensation needs none).
+//! Guarantees: outputs keep their names and shapes; the image input, the detection head's
+//! output convolutions, graph outputs and `ignore` keep every channel; a group the channel
+//! analysis cannot see through is left whole and named, never pruned wrongly.
+//! Reports: every group with channels before/after (and why it was kept or how it was
+//! rounded), MACs and parameters before/after, compensation work, and the outputs' rel L2
+//! against the unpruned model on held-out calibration frames, without and with
+//! compensation.
+
+use crate::analysis::channels::analyse;
+use crate::analysis::partition::image_input;
+use crate::calib_frames::calibration_frames;
+use crate::ir::{infer, Graph};
+use crate::metrics::tensor_error::compare;
+use crate::onnx::edit::expose_outputs;
+use crate::onnx::proto::ModelProto;
+use crate::pipeline::{counts, Pass, PassContext};
+use crate::prune::compensate::{self, Mode};
+use crate::prune::importance::{self, Criterion};
+use crate::prune::{apply, select, Scope, SelectOptions};
+use crate::runtime::ort_runtime::OrtRuntime;
+use crate::runtime::Runtime;
+use crate::tensor::Tensor;
+use anyhow::{anyhow, bail, Result};
+use std::collections::HashMap;
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Options {
+    /// Fraction of each group's channels removed.
+    pub ratio: f64,
+    pub importance: Criterion,
+    pub scope: Scope,
+    /// Kept channel counts are multiples of this (8 for CPUs' SIMD lanes, 16 for RKNN).
+    pub round_to: usize,
+    pub compensate: Mode,
+    /// Calibration frames used (from `--calib` or simulated); every 4th is held out to
+    /// measure the result.
+    pub calib_frames: usize,
+    /// Ridge strength of the refit, relative to the mean input variance.
+    pub ridge: f64,
+    /// Values or node names whose channels must all stay.
+    pub ignore: Vec<String>,
+    pub seed: u64,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options { ratio: 0.5, importance: Criterion::L1, scope: Scope::Uniform, round_to: 8, compensate: Mode::Lstsq, calib_frames: 16, ridge: 1e-3, ignore: Vec::new(), seed: 0 }
+    }
+}
+
+pub struct Prune {
+    pub options: Options,
+}
+
+/// Pixel positions per frame entering a regression: enough to pin down a few hundred
+/// coefficients, few enough that the Gram matrix stays cheap at 640x480.
+const MAX_REGRESSION_POSITIONS: usize = 8192;
+
+impl Pass for Prune {
+    fn name(&self) -> &'static str {
+        "prune"
+    }
+
+    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+        let o = &self.options;
+        if !(0.0..1.0).contains(&o.ratio) {
+            bail!("prune ratio {} must be in [0, 1)", o.ratio);
+        }
+        let original = model.clone();
+        let g = original.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+        let graph = Graph::build(g)?;
+        let inf = infer(&graph);
+        let analysis = analyse(&graph, &inf, &o.ignore);
+
+        let (feeds, source) = calibration_feeds(&graph, &inf, cx, o)?;
+
+        let (scores, fallback) = match o.importance {
+            Criterion::L1 => (importance::magnitude(&graph, &analysis, false), 0),
+            Criterion::L2 => (importance::magnitude(&graph, &analysis, true), 0),
+            Criterion::BnGamma => importance::bn_gamma(&graph, &analysis),
+            Criterion::Activation => (importance::activation(&analysis, &mean_abs(&original, &analysis, &feeds)?), 0),
+        };
+        let plan = select(&analysis, &scores, &SelectOptions { ratio: o.ratio, round_to: o.round_to, scope: o.scope });
+        let kept = apply::kept_positions(&analysis, &plan.keep)?;
+        let opset = model.opset_import.iter().find(|s| s.domain.is_empty()).map_or(13, |s| s.version);
+        let pg = super::graph_mut(model)?;
+        let rewritten = apply::apply(pg, &analysis, &kept, opset)?;
+        super::dce::eliminate(pg)?;
+        check_outputs(&original, model)?;
+
+        let (fit, held_out): (Vec<_>, Vec<_>) = feeds.iter().enumerate().partition(|(i, _)| feeds.len() < 4 || i % 4 != 3);
+        let fit: Vec<Vec<(String, Tensor)>> = fit.into_iter().map(|(_, f)| f.clone()).collect();
+        let held_out: Vec<Vec<(String, Tensor)>> = if held_out.is_empty() { fit.clone() } else { held_out.into_iter().map(|(_, f)| f.clone()).collect() };
+        let uncompensated = (o.compensate != Mode::None).then(|| model.clone());
+        let comp = compensate::compensate(&original, model, &kept, &fit, &compensate::Options { mode: o.compensate, lambda: o.ridge, max_positions: MAX_REGRESSION_POSITIONS })?;
+        super::dce::eliminate(super::graph_mut(model)?)?;
+
+        let mut errors = serde_json::Map::new();
+        if !held_out.is_empty() {
+            if let Some(u) = &uncompensated {
+                errors.insert("uncompensated".into(), output_errors(&original, u, &held_out)?);
+            }
+            errors.insert(if o.compensate == Mode::None { "pruned" } else { "compensated" }.into(), output_errors(&original, model, &held_out)?);
+        }
+        let (before, after) = (counts(&original)?, counts(model)?);
+        let pruned_groups = plan.groups.iter().filter(|p| p.after < p.before).count();
+        Ok(serde_json::json!({
+            "ratio": o.ratio,
+            "importance": o.importance,
+            "importance_fallback_classes": fallback,
+            "scope": o.scope,
+            "round_to": o.round_to,
+            "groups_pruned": pruned_groups,
+            "groups_kept": plan.groups.len() - pruned_groups,
+            "channels_before": plan.groups.iter().map(|p| p.before).sum::<usize>(),
+            "channels_after": plan.groups.iter().map(|p| p.after).sum::<usize>(),
+            "macs_ratio": after.macs as f64 / before.macs.max(1) as f64,
+            "params_ratio": after.params as f64 / before.params.max(1) as f64,
+            "tensors_rewritten": rewritten,
+            "compensation": { "mode": o.compensate, "frames_fit": fit.len(), "work": comp },
+            "calibration": source,
+            "held_out_frames": if errors.is_empty() { 0 } else { held_out.len() },
+            "output_rel_l2": errors,
+            "groups": plan.groups,
+        }))
+    }
+}
+
+/// Feeds for the calibration frames: the image input only (other inputs must be bound).
+fn calibration_feeds(graph: &Graph, inf: &crate::ir::Inferred, cx: &PassContext, o: &Options) -> Result<(Vec<Vec<(String, Tensor)>>, String)> {
+    let image = image_input(graph, inf).ok_or_else(|| anyhow!("prune needs a [1, C, H, W] image input to run calibration frames"))?;
+    if let Some(other) = graph.inputs.iter().find(|v| v.name != image) {
+        bail!("input '{}' has no calibration value; run bind-psf (with --psf) before prune", other.name);
+    }
+    let s = inf.shape(&image).ok_or_else(|| anyhow!("image input '{image}' has no static shape"))?;
+    if s[1] != 1 {
+        bail!("image input '{image}' has {} channels; calibration frames are single-channel thermal images", s[1]);
+    }
+    let set = calibration_frames(cx.calib.as_deref(), o.calib_frames, s[2], s[3], o.seed)?;
+    Ok((set.frames.into_iter().map(|f| vec![(image.clone(), f.image)]).collect(), set.source))
+}
+
+/// Mean |activation| per channel of every analysed value read by a convolution.
+fn mean_abs(model: &ModelProto, a: &crate::analysis::channels::ChannelAnalysis, feeds: &[Vec<(String, Tensor)>]) -> Result<HashMap<String, Vec<f64>>> {
+    let g = model.graph.as_ref().expect("checked");
+    let names: Vec<String> = g.node.iter().filter(|n| n.op_type == "Conv").map(|n| n.input[0].clone()).filter(|v| a.values.contains_key(v)).collect::<std::collections::BTreeSet<_>>().into_iter().collect();
+    let mut rt = OrtRuntime::new(&expose_outputs(model, &names))?;
+    let mut sums: HashMap<String, Vec<f64>> = HashMap::new();
+    for f in feeds {
+        for (n, t) in rt.run(f)? {
+            let (Some(s), Some(v)) = (a.values.get(&n), t.as_f32()) else { continue };
+            let plane = v.len() / s.channels.max(1);
+            let acc = sums.entry(n).or_insert_with(|| vec![0.0; s.channels]);
+            for (c, chunk) in v.chunks(plane.max(1)).enumerate() {
+                acc[c % s.channels] += chunk.iter().map(|x| x.abs() as f64).sum::<f64>() / plane as f64;
+            }
+        }
+    }
+    Ok(sums)
+}
+
+/// Outputs must keep their names and shapes: the deployment's post-processing depends on them.
+fn check_outputs(original: &ModelProto, pruned: &ModelProto) -> Result<()> {
+    let shapes = |m: &ModelProto| -> Result<Vec<(String, Option<Vec<usize>>)>> {
+        let g = m.graph.as_ref().expect("checked");
+        let graph = Graph::build(g)?;
+        let inf = infer(&graph);
+        Ok(g.output.iter().map(|o| (o.name.clone(), inf.shape(&o.name))).collect())
+    };
+    let (a, b) = (shapes(original)?, shapes(pruned)?);
+    if a != b {
+        bail!("pruning changed the outputs ({a:?} -> {b:?}); this is a bug in the channel analysis, please report it");
+    }
+    Ok(())
+}
+
+/// Per output rel L2 of `candidate` against `reference` over `feeds`.
+fn output_errors(reference: &ModelProto, candidate: &ModelProto, feeds: &[Vec<(String, Tensor)>]) -> Result<serde_json::Value> {
+    let mut r = OrtRuntime::new(reference)?;
+    let mut c = OrtRuntime::new(candidate)?;
+    let mut acc: Vec<(String, Vec<f64>, Vec<f64>)> = Vec::new();
+    for f in feeds {
+        let (ro, co) = (r.run(f)?, c.run(f)?);
+        for (k, ((name, a), (_, b))) in ro.iter().zip(&co).enumerate() {
+            if acc.len() <= k {
+                acc.push((name.clone(), Vec::new(), Vec::new()));
+            }
+            acc[k].1.extend(a.data.to_f64());
+            acc[k].2.extend(b.data.to_f64());
+        }
+    }
+    Ok(acc.into_iter().map(|(n, a, b)| (n, serde_json::json!(compare(&a, &b).rel_l2))).collect::<serde_json::Map<_, _>>().into())
+}

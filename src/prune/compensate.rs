@@ -1,0 +1,450 @@
+//! Training-free compensation: after channels go, refit the convolutions that read them so
+//! their outputs match the unpruned model's on calibration frames.
+//!
+//! Layers are corrected in order of depth. At each depth the pruned model, with every
+//! shallower layer already corrected, is run on the calibration frames next to the
+//! original: a convolution sees X' (its pruned, drifted input) where the original saw X
+//! and produced Y. Same-depth layers never feed each other, so one run per depth suffices.
+//!
+//! `lstsq` refits the kept output rows by ridge regression, pulled towards the pruned
+//! weights: over the unrolled k×k×C' receptive field of X' to Y when that is at most
+//! [`MAX_UNROLLED`] features (exact least squares on the layer's output, intercept as the
+//! bias), otherwise per pixel from X' to X (W' = W·M per tap, for each layer's wide 3x3
+//! convolutions at full width). `bias` (and `lstsq` after an input-space refit) sets the
+//! bias so the output's per-channel mean equals the original's:
+//! b' = b + Σ W·E[X at tap] − Σ W'·E[X' at tap], with tap means over the zero-padded
+//! input taken exactly (borders matter at 8x6 strides).
+
+use super::ridge::Moments;
+use crate::ir::{infer, Graph};
+use crate::onnx::attr;
+use crate::onnx::edit::{expose_outputs, fresh_name, initializer, set_initializer};
+use crate::onnx::proto::{GraphProto, ModelProto, NodeProto};
+use crate::onnx::tensor_proto::{from_tensor, to_tensor};
+use crate::runtime::ort_runtime::OrtRuntime;
+use crate::runtime::Runtime;
+use crate::tensor::Tensor;
+use anyhow::{anyhow, Result};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Mode {
+    None,
+    /// Mean-shift correction of the biases only.
+    Bias,
+    /// Ridge refit of dense convolutions, then mean-shift correction.
+    Lstsq,
+}
+
+pub struct Options {
+    pub mode: Mode,
+    /// Ridge strength relative to the mean feature variance.
+    pub lambda: f64,
+    /// At most this many pixel positions per frame enter a regression (an even subsample).
+    pub max_positions: usize,
+}
+
+/// Largest unrolled receptive field (C'·k·k) fitted on the output directly: its Gram matrix
+/// costs samples × features² per layer, about a second at 640 features and 100k samples.
+pub const MAX_UNROLLED: usize = 640;
+/// Samples per unrolled feature in an output fit, over all frames.
+const SAMPLES_PER_FEATURE: usize = 16;
+
+#[derive(Serialize, Default)]
+pub struct Report {
+    /// Refit on the layer's output (unrolled receptive field).
+    pub refit_output: usize,
+    /// Refit in input space (per pixel, per tap).
+    pub refit_input: usize,
+    /// Depths processed: one run of both models per frame each.
+    pub depths: usize,
+    pub bias_corrected: usize,
+    /// Convolutions whose regression was ill-posed: only their bias was corrected.
+    pub not_refit: Vec<String>,
+}
+
+/// Convolution geometry along one spatial axis.
+#[derive(Clone, Copy)]
+struct Axis {
+    k: usize,
+    stride: usize,
+    dilation: usize,
+    pad: usize,
+    input: usize,
+    output: usize,
+}
+
+impl Axis {
+    /// Input index read by output `o` at tap `t`, if inside the (unpadded) input.
+    fn source(&self, o: usize, t: usize) -> Option<usize> {
+        let p = (o * self.stride + t * self.dilation) as isize - self.pad as isize;
+        (p >= 0 && (p as usize) < self.input).then_some(p as usize)
+    }
+}
+
+fn geometry(n: &NodeProto, w: &Tensor, x: &[usize], y: &[usize]) -> Option<[Axis; 2]> {
+    let k = attr::ints(n, "kernel_shape").map(|v| v.iter().map(|&d| d as usize).collect()).unwrap_or_else(|| w.shape[2..].to_vec());
+    let s = attr::ints(n, "strides").unwrap_or(vec![1, 1]);
+    let d = attr::ints(n, "dilations").unwrap_or(vec![1, 1]);
+    let pads = attr::ints(n, "pads").unwrap_or(vec![0; 4]);
+    if k.len() != 2 || s.len() != 2 || d.len() != 2 || pads.len() != 4 {
+        return None;
+    }
+    let auto = attr::string(n, "auto_pad", "NOTSET");
+    let axis = |i: usize| {
+        let span = (k[i] - 1) * d[i] as usize + 1;
+        let pad = match auto.as_str() {
+            "SAME_UPPER" | "SAME_LOWER" => {
+                let total = ((y[2 + i] - 1) * s[i] as usize + span).saturating_sub(x[2 + i]);
+                if auto == "SAME_UPPER" { total / 2 } else { total - total / 2 }
+            }
+            "VALID" => 0,
+            _ => pads[i].max(0) as usize,
+        };
+        Axis { k: k[i], stride: s[i].max(1) as usize, dilation: d[i].max(1) as usize, pad, input: x[2 + i], output: y[2 + i] }
+    };
+    Some([axis(0), axis(1)])
+}
+
+/// Σ over output positions of the input under each tap, per channel: [C][kh*kw], for a
+/// [N, C, H, W] input. Separable: row sums per column tap, then over the row taps.
+fn tap_sums(x: &[f32], c: usize, geo: &[Axis; 2]) -> Vec<f64> {
+    let [gy, gx] = *geo;
+    let plane = gy.input * gx.input;
+    let n = x.len() / (c * plane).max(1);
+    let mut out = vec![0.0; c * gy.k * gx.k];
+    let cols: Vec<Vec<usize>> = (0..gx.k).map(|t| (0..gx.output).filter_map(|o| gx.source(o, t)).collect()).collect();
+    let rows: Vec<Vec<usize>> = (0..gy.k).map(|t| (0..gy.output).filter_map(|o| gy.source(o, t)).collect()).collect();
+    for b in 0..n {
+        for ch in 0..c {
+            let p = &x[(b * c + ch) * plane..(b * c + ch + 1) * plane];
+            for (tx, cs) in cols.iter().enumerate() {
+                let r: Vec<f64> = (0..gy.input).map(|yy| cs.iter().map(|&xx| p[yy * gx.input + xx] as f64).sum()).collect();
+                for (ty, rs) in rows.iter().enumerate() {
+                    out[(ch * gy.k + ty) * gx.k + tx] += rs.iter().map(|&yy| r[yy]).sum::<f64>();
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Per output row: Σ_c Σ_t W[r, c, t] · T[segment(r) * cpg + c, t].
+fn mean_response(w: &[f32], rows: usize, cpg: usize, taps: usize, segment: impl Fn(usize) -> usize, t: &[f64]) -> Vec<f64> {
+    (0..rows)
+        .map(|r| {
+            let base = segment(r) * cpg;
+            (0..cpg).map(|c| (0..taps).map(|k| w[(r * cpg + c) * taps + k] as f64 * t[(base + c) * taps + k]).sum::<f64>()).sum()
+        })
+        .collect()
+}
+
+/// One convolution to correct at a depth: its pruned and original forms.
+struct Job {
+    node: usize,
+    x: String,
+    y: String,
+    orig: NodeProto,
+    w_orig: Tensor,
+    w_new: Tensor,
+    geo: [Axis; 2],
+    /// Kept input positions (all when its input lost none).
+    xk: Vec<usize>,
+    /// Kept output positions.
+    ys: Vec<usize>,
+    group_o: usize,
+    group_p: usize,
+}
+
+impl Job {
+    fn taps(&self) -> usize {
+        self.geo[0].k * self.geo[1].k
+    }
+    /// Unrolled features per output row of the pruned layer.
+    fn unrolled(&self) -> usize {
+        self.w_new.shape[1] * self.taps()
+    }
+    fn output_fit(&self) -> bool {
+        self.unrolled() <= MAX_UNROLLED
+    }
+}
+
+/// Depth of every value: the number of convolutions on the longest path from an input.
+fn depths(g: &Graph) -> HashMap<String, usize> {
+    let mut d: HashMap<String, usize> = HashMap::new();
+    for &i in &g.order {
+        let n = g.node(i);
+        let base = n.input.iter().filter_map(|v| d.get(v)).copied().max().unwrap_or(0);
+        let out = base + usize::from(matches!(n.op_type.as_str(), "Conv" | "ConvTranspose"));
+        for o in &n.output {
+            d.insert(o.clone(), out);
+        }
+    }
+    d
+}
+
+/// Values that differ from the original because channels in `kept` were pruned.
+fn drifted(g: &Graph, kept: &HashMap<String, Vec<usize>>) -> std::collections::HashSet<String> {
+    let mut out: std::collections::HashSet<String> = kept.keys().cloned().collect();
+    for &i in &g.order {
+        let n = g.node(i);
+        if n.input.iter().any(|v| out.contains(v)) {
+            out.extend(n.output.iter().cloned());
+        }
+    }
+    out
+}
+
+/// Compensates `pruned` (the pruning of `original` with `kept` channel positions) on `feeds`.
+pub fn compensate(original: &ModelProto, pruned: &mut ModelProto, kept: &HashMap<String, Vec<usize>>, feeds: &[Vec<(String, Tensor)>], opts: &Options) -> Result<Report> {
+    let mut report = Report::default();
+    if opts.mode == Mode::None || feeds.is_empty() {
+        return Ok(report);
+    }
+    let orig_g = original.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+    let orig_graph = Graph::build(orig_g)?;
+    let inf = infer(&orig_graph);
+    let mut jobs: Vec<(usize, Job)> = Vec::new();
+    {
+        let g = pruned.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+        let graph = Graph::build(g)?;
+        let depth = depths(&graph);
+        let drift = drifted(&graph, kept);
+        for (i, n) in g.node.iter().enumerate() {
+            if n.op_type != "Conv" || !n.domain.is_empty() || !drift.contains(&n.input[0]) {
+                continue;
+            }
+            let Some(o) = orig_g.node.iter().find(|m| m.output.first() == n.output.first()) else { continue };
+            let weight = |gp: &crate::onnx::proto::GraphProto, name: &str| initializer(gp, name).and_then(|t| to_tensor(t).ok()).filter(|t| t.as_f32().is_some());
+            let (Some(w_orig), Some(w_new)) = (weight(orig_g, &o.input[1]), weight(g, &n.input[1])) else { continue };
+            let (Some(xs), Some(yshape)) = (inf.shape(&o.input[0]), inf.shape(&o.output[0])) else { continue };
+            let Some(geo) = geometry(o, &w_orig, &xs, &yshape) else { continue };
+            let job = Job {
+                node: i,
+                x: o.input[0].clone(),
+                y: o.output[0].clone(),
+                xk: kept.get(&o.input[0]).cloned().unwrap_or_else(|| (0..xs[1]).collect()),
+                ys: kept.get(&o.output[0]).cloned().unwrap_or_else(|| (0..w_orig.shape[0]).collect()),
+                group_o: attr::int(o, "group", 1).max(1) as usize,
+                group_p: attr::int(n, "group", 1).max(1) as usize,
+                orig: o.clone(),
+                w_orig,
+                w_new,
+                geo,
+            };
+            jobs.push((depth.get(&n.input[0]).copied().unwrap_or(0), job));
+        }
+    }
+    jobs.sort_by_key(|(d, j)| (*d, j.node));
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let level = ort::session::builder::GraphOptimizationLevel::Level3;
+    let mut at = 0;
+    while at < jobs.len() {
+        let depth = jobs[at].0;
+        let end = jobs[at..].iter().position(|(d, _)| *d != depth).map_or(jobs.len(), |k| at + k);
+        let stage: Vec<&Job> = jobs[at..end].iter().map(|(_, j)| j).collect();
+        at = end;
+        report.depths += 1;
+        let xs: Vec<String> = stage.iter().map(|j| j.x.clone()).collect::<std::collections::BTreeSet<_>>().into_iter().collect();
+        let mut want_orig = xs.clone();
+        want_orig.extend(stage.iter().filter(|j| opts.mode == Mode::Lstsq && j.output_fit()).map(|j| j.y.clone()));
+        let mut orig_rt = OrtRuntime::with_options(&expose_outputs(original, &want_orig), level, threads)?;
+        let mut pruned_rt = OrtRuntime::with_options(&expose_outputs(pruned, &xs), level, threads)?;
+        let mut acc: Vec<Accumulator> = stage.iter().map(|j| Accumulator::new(j, opts.mode)).collect();
+        for f in feeds {
+            let (ro, rp) = (orig_rt.run(f)?, pruned_rt.run(f)?);
+            let get = |outs: &[(String, Tensor)], v: &str| -> Result<Vec<f32>> {
+                let t = &outs.iter().find(|(n, _)| n == v).ok_or_else(|| anyhow!("value {v} was not returned"))?.1;
+                t.as_f32().map(<[f32]>::to_vec).ok_or_else(|| anyhow!("value {v} is not float32"))
+            };
+            for (j, a) in stage.iter().zip(acc.iter_mut()) {
+                let (x, xp) = (get(&ro, &j.x)?, get(&rp, &j.x)?);
+                let y = if a.output.is_empty() { None } else { Some(get(&ro, &j.y)?) };
+                let samples = (SAMPLES_PER_FEATURE * j.unrolled()).div_ceil(feeds.len()).min(opts.max_positions);
+                a.add(j, &x, &xp, y.as_deref(), opts.max_positions, samples);
+            }
+        }
+        let g = pruned.graph.as_mut().expect("checked");
+        for (j, a) in stage.into_iter().zip(acc) {
+            let name = g.node[j.node].name.clone();
+            match a.finish(j, feeds.len(), opts.lambda, orig_g)? {
+                Some((w, b, how)) => {
+                    match how {
+                        Fit::Output => report.refit_output += 1,
+                        Fit::Input => report.refit_input += 1,
+                        Fit::Bias => {}
+                    }
+                    set_conv_params(g, j.node, &w, &b);
+                    report.bias_corrected += 1;
+                }
+                None => report.not_refit.push(name),
+            }
+        }
+    }
+    Ok(report)
+}
+
+enum Fit {
+    Output,
+    Input,
+    Bias,
+}
+
+/// Statistics of one convolution over the frames.
+struct Accumulator {
+    /// Tap means of X (original) and X' (pruned), summed over frames: [C][taps].
+    taps_o: Vec<f64>,
+    taps_p: Vec<f64>,
+    /// Output fit: one regression per segment of the pruned layer (unrolled X' -> Y rows).
+    output: Vec<Moments>,
+    /// Input fit: X' -> X per pixel (dense layers too wide to unroll).
+    input: Option<Moments>,
+}
+
+impl Accumulator {
+    fn new(j: &Job, mode: Mode) -> Accumulator {
+        let (cin_o, cin_p) = (j.w_orig.shape[1] * j.group_o, j.xk.len());
+        let rows = j.ys.len() / j.group_p.max(1);
+        let lstsq = mode == Mode::Lstsq;
+        Accumulator {
+            taps_o: vec![0.0; cin_o * j.taps()],
+            taps_p: vec![0.0; cin_p * j.taps()],
+            output: if lstsq && j.output_fit() { (0..j.group_p).map(|_| Moments::new(j.unrolled(), rows)).collect() } else { Vec::new() },
+            input: (lstsq && !j.output_fit() && j.group_o == 1 && j.group_p == 1).then(|| Moments::new(cin_p, cin_o)),
+        }
+    }
+
+    /// `output_samples`: positions per frame for the unrolled fit (a multiple of its features
+    /// over all frames is plenty with the ridge prior, and the Gram matrix is the cost).
+    fn add(&mut self, j: &Job, x: &[f32], xp: &[f32], y: Option<&[f32]>, max_positions: usize, output_samples: usize) {
+        let per = (j.geo[0].output * j.geo[1].output) as f64;
+        let cin_o = self.taps_o.len() / j.taps();
+        for (a, v) in self.taps_o.iter_mut().zip(tap_sums(x, cin_o, &j.geo)) {
+            *a += v / per;
+        }
+        for (a, v) in self.taps_p.iter_mut().zip(tap_sums(xp, j.xk.len(), &j.geo)) {
+            *a += v / per;
+        }
+        let [gy, gx] = j.geo;
+        let plane = gy.input * gx.input;
+        if let Some(m) = self.input.as_mut() {
+            m.add_planes(xp, x, plane, plane.div_ceil(max_positions.max(1)));
+        }
+        if let Some(y) = y {
+            let outs = gy.output * gx.output;
+            let picks: Vec<usize> = (0..outs).step_by(outs.div_ceil(output_samples.max(1)).max(1)).collect();
+            let cpg = j.w_new.shape[1];
+            let rows = j.ys.len() / j.group_p.max(1);
+            for (s, m) in self.output.iter_mut().enumerate() {
+                let mut cols: Vec<Vec<f64>> = Vec::with_capacity(cpg * j.taps());
+                for c in 0..cpg {
+                    let p = &xp[(s * cpg + c) * plane..(s * cpg + c + 1) * plane];
+                    for ty in 0..gy.k {
+                        for tx in 0..gx.k {
+                            cols.push(picks.iter().map(|&o| match (gy.source(o / gx.output, ty), gx.source(o % gx.output, tx)) {
+                                (Some(yy), Some(xx)) => p[yy * gx.input + xx] as f64,
+                                _ => 0.0,
+                            }).collect());
+                        }
+                    }
+                }
+                let targets: Vec<Vec<f64>> = (0..rows).map(|r| {
+                    let row = j.ys[s * rows + r];
+                    picks.iter().map(|&o| y[row * outs + o] as f64).collect()
+                }).collect();
+                m.add_columns(&cols, &targets);
+            }
+        }
+    }
+
+    /// New (weight, bias) for the pruned layer, or None when its fit was ill-posed.
+    fn finish(self, j: &Job, frames: usize, lambda: f64, orig_g: &GraphProto) -> Result<Option<(Tensor, Tensor, Fit)>> {
+        let f = frames.max(1) as f64;
+        let ntaps = j.taps();
+        let mut weight = j.w_new.as_f32().expect("f32 checked").to_vec();
+        let current_bias = |g: &GraphProto, n: &NodeProto| -> Result<Vec<f32>> {
+            Ok(match n.input.get(2).filter(|s| !s.is_empty()) {
+                Some(b) => to_tensor(initializer(g, b).ok_or_else(|| anyhow!("bias of {}", n.name))?)?.as_f32().map(<[f32]>::to_vec).ok_or_else(|| anyhow!("bias of {}", n.name))?,
+                None => Vec::new(),
+            })
+        };
+        let bias_o_all = current_bias(orig_g, &j.orig)?;
+        let bias_o: Vec<f32> = if bias_o_all.is_empty() { vec![0.0; j.ys.len()] } else { j.ys.iter().map(|&r| bias_o_all[r]).collect() };
+        if !self.output.is_empty() {
+            let rows = j.ys.len() / j.group_p.max(1);
+            let d = j.unrolled();
+            let mut bias = vec![0.0f32; j.ys.len()];
+            for (s, m) in self.output.iter().enumerate() {
+                let prior: Vec<f64> = weight[s * rows * d..(s + 1) * rows * d].iter().map(|&v| v as f64).collect();
+                let Some((mm, c)) = m.solve(lambda, Some(&prior)) else { return Ok(None) };
+                for (k, v) in mm.iter().enumerate() {
+                    weight[s * rows * d + k] = *v as f32;
+                }
+                for r in 0..rows {
+                    bias[s * rows + r] = c[r] as f32;
+                }
+            }
+            return Ok(finite(j, weight, bias, Fit::Output));
+        }
+        let rows_o = j.w_orig.select(0, &j.ys).ok_or_else(|| anyhow!("weight rows of {}", j.orig.name))?;
+        let wo = rows_o.as_f32().expect("f32 checked");
+        let (cin_o, cin_p) = (j.w_orig.shape[1], j.w_new.shape[1]);
+        let mut how = Fit::Bias;
+        if let Some(m) = &self.input {
+            // Prior: the identity on the kept channels (X'[jj] stands for X[xk[jj]]).
+            let mut prior = vec![0.0; cin_o * cin_p];
+            for (jj, &c) in j.xk.iter().enumerate() {
+                prior[c * cin_p + jj] = 1.0;
+            }
+            let Some((mm, _)) = m.solve(lambda, Some(&prior)) else { return Ok(None) };
+            for r in 0..j.ys.len() {
+                for jj in 0..cin_p {
+                    for t in 0..ntaps {
+                        weight[(r * cin_p + jj) * ntaps + t] = (0..cin_o).map(|c| wo[(r * cin_o + c) * ntaps + t] as f64 * mm[c * cin_p + jj]).sum::<f64>() as f32;
+                    }
+                }
+            }
+            how = Fit::Input;
+        }
+        let to: Vec<f64> = self.taps_o.iter().map(|v| v / f).collect();
+        let tp: Vec<f64> = self.taps_p.iter().map(|v| v / f).collect();
+        let (per_seg_o, per_seg_p) = (j.w_orig.shape[0] / j.group_o, (j.ys.len() / j.group_p).max(1));
+        let mo = mean_response(wo, j.ys.len(), cin_o, ntaps, |r| j.ys[r] / per_seg_o, &to);
+        let mp = mean_response(&weight, j.ys.len(), cin_p, ntaps, |r| r / per_seg_p, &tp);
+        let bias: Vec<f32> = (0..j.ys.len()).map(|r| (bias_o[r] as f64 + mo[r] - mp[r]) as f32).collect();
+        Ok(finite(j, weight, bias, how))
+    }
+}
+
+fn finite(j: &Job, weight: Vec<f32>, bias: Vec<f32>, how: Fit) -> Option<(Tensor, Tensor, Fit)> {
+    weight.iter().chain(&bias).all(|v| v.is_finite()).then(|| (Tensor::f32(j.w_new.shape.clone(), weight), Tensor::f32(vec![j.ys.len()], bias), how))
+}
+
+fn set_conv_params(g: &mut GraphProto, node: usize, w: &Tensor, b: &Tensor) {
+    let wn = fresh_name(g, &format!("{}_compensated", g.node[node].input[1]));
+    set_initializer(g, from_tensor(&wn, w));
+    let bn = fresh_name(g, &format!("{}_bias_compensated", if g.node[node].name.is_empty() { "conv" } else { &g.node[node].name }));
+    set_initializer(g, from_tensor(&bn, b));
+    let n = &mut g.node[node];
+    n.input[1] = wn;
+    if n.input.len() < 3 {
+        n.input.push(bn);
+    } else {
+        n.input[2] = bn;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tap_sums_count_zero_padding() {
+        // 3x3 input of ones, 3x3 kernel, pad 1, stride 1: the centre tap sees 9 ones, corners 4.
+        let ax = Axis { k: 3, stride: 1, dilation: 1, pad: 1, input: 3, output: 3 };
+        let s = tap_sums(&[1.0; 9], 1, &[ax, ax]);
+        assert_eq!(s, vec![4.0, 6.0, 4.0, 6.0, 9.0, 6.0, 4.0, 6.0, 4.0]);
+    }
+}
