@@ -22,6 +22,8 @@ pub struct Report {
     pub ops: BTreeMap<String, usize>,
     /// Float (and int8) initializer elements, split by part.
     pub params: Split,
+    /// Elements of constant tensors that are not learned parameters (PSF gate maps, decode grids).
+    pub constants: u64,
     /// Multiply-accumulates of Conv/ConvTranspose/Gemm/MatMul, split by part.
     pub macs: Split,
     pub bridge: bridge::Bridge,
@@ -84,6 +86,13 @@ pub fn inspect(model: &ModelProto) -> Result<Report> {
     for (n, p) in param_part.values() {
         params.add(p.unwrap_or(partition::Part::Dead), *n);
     }
+    let constants: u64 = {
+        let mut seen: HashMap<&str, u64> = HashMap::new();
+        for node in &gp.node {
+            seen.extend(cost::constants_of(node, &g));
+        }
+        seen.iter().filter(|(k, _)| !param_part.contains_key(*k)).map(|(_, v)| v).sum()
+    };
 
     let summary = |v: &crate::onnx::proto::ValueInfoProto, role: Option<&'static str>| {
         let t = inf.types.get(&v.name).cloned().unwrap_or_default();
@@ -107,6 +116,7 @@ pub fn inspect(model: &ModelProto) -> Result<Report> {
         nodes: gp.node.len(),
         ops,
         params,
+        constants,
         macs,
         bridge: bridge::find(&g, &inf, part.image_input.as_deref()),
         head: head::detect(&g, &inf, &part.det_outputs),
@@ -150,6 +160,7 @@ impl Report {
         for (name, v) in [("params", self.params), ("MACs", self.macs)] {
             let _ = writeln!(s, "{:<12} {:>12} {:>12} {:>12} {:>12}", name, human(v.total), human(v.reconstruction_only), human(v.detection_only), human(v.shared));
         }
+        let _ = writeln!(s, "{:<12} {:>12}  (gate maps, grids: not parameters)", "constants", human(self.constants));
         let classes = self.head.classes.map_or("?".into(), |c| c.to_string());
         let _ = writeln!(s, "\nhead: {:?}, {classes} classes, output '{}'", self.head.kind, self.head.output.as_deref().unwrap_or("?"));
         match self.bridge.blur_maps.first() {

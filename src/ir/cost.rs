@@ -42,15 +42,39 @@ pub fn macs(node: &NodeProto, inf: &Inferred) -> u64 {
     }
 }
 
-/// Learnable-looking parameters read by `node`: float initializers (weights, biases, BN stats)
-/// and int8/uint8 quantized weights. Other integer initializers are shape arguments.
+/// Ops whose constant inputs are learned weights.
+const WEIGHTED_OPS: &[&str] = &[
+    "Conv", "ConvTranspose", "Gemm", "MatMul", "BatchNormalization", "InstanceNormalization", "LayerNormalization", "PRelu",
+    "QLinearConv", "ConvInteger", "QLinearMatMul", "MatMulInteger", "DequantizeLinear",
+];
+
+/// Learned parameters read by `node`: the float (or int8/uint8 quantized) constants of
+/// weighted layers, and per-channel scale/shift constants of element-wise ops (folded
+/// BatchNorm). Not parameters: precomputed maps such as folded PSF gates ([1, 1, H, W]) or
+/// decode grids, and integer shape arguments; [`constants_of`] counts those.
 pub fn params_of<'g>(node: &'g NodeProto, g: &Graph<'g>) -> Vec<(&'g str, u64)> {
-    node.input
-        .iter()
-        .filter_map(|n| {
-            let t = g.initializers.get(n.as_str())?;
-            let counts = DType::from_onnx(t.data_type).is_some_and(|d| d.is_float() || matches!(d, DType::I8 | DType::U8));
-            counts.then(|| (n.as_str(), t.dims.iter().map(|&d| d.max(0) as u64).product::<u64>()))
-        })
-        .collect()
+    numeric_constants(node, g).filter(|(_, t)| WEIGHTED_OPS.contains(&node.op_type.as_str()) || per_channel(&t.dims)).map(|(n, t)| (n, elements(&t.dims))).collect()
+}
+
+/// Constant tensors read by `node` that are not parameters (see [`params_of`]).
+pub fn constants_of<'g>(node: &'g NodeProto, g: &Graph<'g>) -> Vec<(&'g str, u64)> {
+    numeric_constants(node, g).filter(|(_, t)| !(WEIGHTED_OPS.contains(&node.op_type.as_str()) || per_channel(&t.dims))).map(|(n, t)| (n, elements(&t.dims))).collect()
+}
+
+fn numeric_constants<'a, 'g>(node: &'g NodeProto, g: &'a Graph<'g>) -> impl Iterator<Item = (&'g str, &'g crate::onnx::proto::TensorProto)> + use<'a, 'g> {
+    node.input.iter().filter_map(|n| {
+        let t = g.initializers.get(n.as_str())?;
+        let counts = DType::from_onnx(t.data_type).is_some_and(|d| d.is_float() || matches!(d, DType::I8 | DType::U8));
+        counts.then_some((n.as_str(), *t))
+    })
+}
+
+/// [1, C, 1, 1]-like: only the channel axis (third from the right) is longer than 1.
+fn per_channel(dims: &[i64]) -> bool {
+    let r = dims.len();
+    r >= 3 && dims[r - 3] > 1 && dims.iter().enumerate().all(|(i, &d)| i == r - 3 || d == 1)
+}
+
+fn elements(dims: &[i64]) -> u64 {
+    dims.iter().map(|&d| d.max(0) as u64).product()
 }

@@ -52,7 +52,7 @@ pub struct Options {
 
 impl Default for Options {
     fn default() -> Self {
-        Options { ratio: 0.5, importance: Criterion::L1, scope: Scope::Uniform, round_to: 8, compensate: Mode::Lstsq, calib_frames: 16, ridge: 1e-3, ignore: Vec::new(), seed: 0 }
+        Options { ratio: 0.5, importance: Criterion::L1, scope: Scope::Uniform, round_to: 8, compensate: Mode::Lstsq, calib_frames: 12, ridge: 1e-3, ignore: Vec::new(), seed: 0 }
     }
 }
 
@@ -80,7 +80,14 @@ impl Pass for Prune {
         let inf = infer(&graph);
         let analysis = analyse(&graph, &inf, &o.ignore);
 
-        let (feeds, source) = calibration_feeds(&graph, &inf, cx, o)?;
+        // Frames are needed for activation importance and compensation; otherwise they only
+        // measure the result, and a model they cannot feed is measured without them.
+        let needs_frames = o.importance == Criterion::Activation || o.compensate != Mode::None;
+        let (feeds, source) = match calibration_feeds(&graph, &inf, cx, o) {
+            Ok(f) => f,
+            Err(e) if needs_frames => return Err(e),
+            Err(e) => (Vec::new(), format!("none ({e})")),
+        };
 
         let (scores, fallback) = match o.importance {
             Criterion::L1 => (importance::magnitude(&graph, &analysis, false), 0),

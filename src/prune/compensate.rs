@@ -50,7 +50,7 @@ pub struct Options {
 /// costs samples × features² per layer, about a second at 640 features and 100k samples.
 pub const MAX_UNROLLED: usize = 640;
 /// Samples per unrolled feature in an output fit, over all frames.
-const SAMPLES_PER_FEATURE: usize = 16;
+const SAMPLES_PER_FEATURE: usize = 64;
 
 #[derive(Serialize, Default)]
 pub struct Report {
@@ -239,7 +239,8 @@ pub fn compensate(original: &ModelProto, pruned: &mut ModelProto, kept: &HashMap
     }
     jobs.sort_by_key(|(d, j)| (*d, j.node));
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let level = ort::session::builder::GraphOptimizationLevel::Level3;
+    // Basic optimizations: a session per depth is built, and building is what costs here.
+    let level = ort::session::builder::GraphOptimizationLevel::Level1;
     let mut at = 0;
     while at < jobs.len() {
         let depth = jobs[at].0;
@@ -250,8 +251,8 @@ pub fn compensate(original: &ModelProto, pruned: &mut ModelProto, kept: &HashMap
         let xs: Vec<String> = stage.iter().map(|j| j.x.clone()).collect::<std::collections::BTreeSet<_>>().into_iter().collect();
         let mut want_orig = xs.clone();
         want_orig.extend(stage.iter().filter(|j| opts.mode == Mode::Lstsq && j.output_fit()).map(|j| j.y.clone()));
-        let mut orig_rt = OrtRuntime::with_options(&expose_outputs(original, &want_orig), level, threads)?;
-        let mut pruned_rt = OrtRuntime::with_options(&expose_outputs(pruned, &xs), level, threads)?;
+        let mut orig_rt = OrtRuntime::with_options(&truncated(original, &want_orig)?, level, threads)?;
+        let mut pruned_rt = OrtRuntime::with_options(&truncated(pruned, &xs)?, level, threads)?;
         let mut acc: Vec<Accumulator> = stage.iter().map(|j| Accumulator::new(j, opts.mode)).collect();
         for f in feeds {
             let (ro, rp) = (orig_rt.run(f)?, pruned_rt.run(f)?);
@@ -284,6 +285,16 @@ pub fn compensate(original: &ModelProto, pruned: &mut ModelProto, kept: &HashMap
         }
     }
     Ok(report)
+}
+
+/// `model` computing only `values`: everything past them is cut, so a shallow depth's
+/// runs cost a shallow model.
+fn truncated(model: &ModelProto, values: &[String]) -> Result<ModelProto> {
+    let mut m = expose_outputs(model, values);
+    let g = m.graph.as_mut().expect("checked");
+    g.output.retain(|o| values.contains(&o.name));
+    crate::passes::dce::eliminate(g)?;
+    Ok(m)
 }
 
 enum Fit {

@@ -1,0 +1,212 @@
+//! Structured pruning: random graphs with residuals, concats, splits, grouped/depthwise
+//! convolutions and SE blocks always stay runnable with their output shapes; every fixture
+//! meets the MAC/parameter targets and runs alike on ORT and tract.
+
+mod common;
+use common::*;
+use pdi_compile::onnx::proto::{AttributeProto, GraphProto, ModelProto, NodeProto, OperatorSetIdProto};
+use pdi_compile::onnx::tensor_proto::from_tensor;
+use pdi_compile::pipeline::{run, PassContext, Recipe};
+use pdi_compile::runtime::{self, Engine};
+use pdi_compile::tensor::{Tensor, TensorData};
+use proptest::prelude::*;
+
+/// Builds a random CNN with every coupling the channel analysis handles.
+struct Builder {
+    g: GraphProto,
+    rng: Lcg,
+    n: usize,
+}
+
+impl Builder {
+    fn name(&mut self, p: &str) -> String {
+        self.n += 1;
+        format!("{p}{}", self.n)
+    }
+    fn weight(&mut self, shape: Vec<usize>) -> String {
+        let name = self.name("w");
+        let n: usize = shape.iter().product();
+        let fan: usize = shape[1..].iter().product();
+        let scale = (2.0 / fan as f32).sqrt();
+        let v = (0..n).map(|_| (self.rng.next_f32() - 0.5) * 2.0 * scale).collect();
+        self.g.initializer.push(from_tensor(&name, &Tensor::f32(shape, v)));
+        name
+    }
+    fn node(&mut self, op: &str, inputs: Vec<String>, attrs: Vec<AttributeProto>) -> String {
+        let out = self.name("v");
+        let name = self.name(op);
+        self.g.node.push(NodeProto { name, op_type: op.into(), input: inputs, output: vec![out.clone()], attribute: attrs, ..Default::default() });
+        out
+    }
+    fn conv(&mut self, x: &str, cin: usize, cout: usize, k: usize, group: usize) -> String {
+        let w = self.weight(vec![cout, cin / group, k, k]);
+        let b = self.weight(vec![cout, 1, 1, 1]);
+        let bias = self.name("b");
+        let t = pdi_compile::onnx::tensor_proto::to_tensor(self.g.initializer.iter().find(|t| t.name == b).unwrap()).unwrap();
+        self.g.initializer.push(from_tensor(&bias, &Tensor::f32(vec![cout], t.as_f32().unwrap().to_vec())));
+        let p = (k / 2) as i64;
+        self.node("Conv", vec![x.into(), w, bias], vec![ints("kernel_shape", vec![k as i64; 2]), ints("pads", vec![p; 4]), int("group", group as i64)])
+    }
+    fn silu(&mut self, x: &str) -> String {
+        let s = self.node("Sigmoid", vec![x.into()], vec![]);
+        self.node("Mul", vec![x.into(), s], vec![])
+    }
+}
+
+fn int(name: &str, v: i64) -> AttributeProto {
+    AttributeProto { name: name.into(), r#type: 2, i: Some(v), ..Default::default() }
+}
+fn ints(name: &str, v: Vec<i64>) -> AttributeProto {
+    AttributeProto { name: name.into(), r#type: 7, ints: v, ..Default::default() }
+}
+
+/// A random model: stem, then `blocks` blocks drawn from `kinds`, then a fixed 12-channel head.
+fn random_model(seed: u64, kinds: &[u8]) -> ModelProto {
+    let mut b = Builder { g: GraphProto { name: "random".into(), ..Default::default() }, rng: Lcg(seed), n: 0 };
+    let mut c = 16;
+    let mut x = b.conv("image", 1, c, 3, 1);
+    x = b.silu(&x);
+    for &k in kinds {
+        x = match k % 6 {
+            0 => {
+                // residual
+                let y = b.conv(&x, c, c, 3, 1);
+                let y = b.silu(&y);
+                b.node("Add", vec![x.clone(), y], vec![])
+            }
+            1 => {
+                // two branches concatenated, then a 1x1 back to c
+                let a = b.conv(&x, c, c / 2, 1, 1);
+                let d = b.conv(&x, c, c, 3, 1);
+                let cat = b.node("Concat", vec![a, d], vec![int("axis", 1)]);
+                b.conv(&cat, c / 2 + c, c, 1, 1)
+            }
+            2 => {
+                // split into halves, process one, concat back
+                let sizes = b.name("split");
+                b.g.initializer.push(from_tensor(&sizes, &Tensor::new(vec![2], TensorData::I64(vec![c as i64 / 2, c as i64 / 2]))));
+                let out = (b.name("s"), b.name("s"));
+                let name = b.name("Split");
+                b.g.node.push(NodeProto { name, op_type: "Split".into(), input: vec![x.clone(), sizes], output: vec![out.0.clone(), out.1.clone()], attribute: vec![int("axis", 1)], ..Default::default() });
+                let p = b.conv(&out.1, c / 2, c / 2, 3, 1);
+                b.node("Concat", vec![out.0, p], vec![int("axis", 1)])
+            }
+            3 => {
+                // grouped then depthwise
+                let gq = b.conv(&x, c, c, 3, 4);
+                let r = b.node("Relu", vec![gq], vec![]);
+                b.conv(&r, c, c, 3, c)
+            }
+            4 => {
+                // squeeze-excitation
+                let p = b.node("GlobalAveragePool", vec![x.clone()], vec![]);
+                let f1 = b.conv(&p, c, c / 4, 1, 1);
+                let r = b.node("Relu", vec![f1], vec![]);
+                let f2 = b.conv(&r, c / 4, c, 1, 1);
+                let s = b.node("Sigmoid", vec![f2], vec![]);
+                b.node("Mul", vec![x.clone(), s], vec![])
+            }
+            _ => {
+                // widen, with a channel-agnostic [1,1,H,W] gate and a per-channel scale
+                let y = b.conv(&x, c, 2 * c, 3, 1);
+                let gate = b.name("gate");
+                let gv = (0..256).map(|i| (i % 7) as f32 / 7.0).collect();
+                b.g.initializer.push(from_tensor(&gate, &Tensor::f32(vec![1, 1, 16, 16], gv)));
+                let scale = b.name("scale");
+                b.g.initializer.push(from_tensor(&scale, &Tensor::f32(vec![1, 2 * c, 1, 1], (0..2 * c).map(|i| 1.0 + i as f32 / 10.0).collect())));
+                let y = b.node("Mul", vec![y, gate], vec![]);
+                c *= 2;
+                b.node("Mul", vec![y, scale], vec![])
+            }
+        };
+    }
+    let head = b.conv(&x, c, 12, 1, 1);
+    let mut g = b.g;
+    g.node.last_mut().unwrap().output[0] = "out".into();
+    let _ = head;
+    let vi = |name: &str, shape: &[i64]| pdi_compile::onnx::proto::ValueInfoProto {
+        name: name.into(),
+        r#type: Some(pdi_compile::onnx::proto::TypeProto {
+            value: Some(pdi_compile::onnx::proto::TypeValue::TensorType(pdi_compile::onnx::proto::TensorTypeProto {
+                elem_type: 1,
+                shape: Some(pdi_compile::onnx::proto::TensorShapeProto { dim: shape.iter().map(|&d| pdi_compile::onnx::proto::Dimension { value: Some(pdi_compile::onnx::proto::DimensionValue::DimValue(d)), ..Default::default() }).collect() }),
+            })),
+            ..Default::default()
+        }),
+        ..Default::default()
+    };
+    g.input.push(vi("image", &[1, 1, 16, 16]));
+    g.output.push(vi("out", &[1, 12, 16, 16]));
+    ModelProto { ir_version: 8, opset_import: vec![OperatorSetIdProto { domain: String::new(), version: 13 }], graph: Some(g), ..Default::default() }
+}
+
+fn prune(model: &mut ModelProto, ratio: f64, round_to: usize, compensate: &str) -> serde_json::Value {
+    let recipe = Recipe::parse(&format!("name: t\npasses:\n  - prune: {{ratio: {ratio}, round_to: {round_to}, compensate: {compensate}, calib_frames: 4}}\n")).unwrap();
+    let reports = run(&recipe, model, &PassContext::default()).unwrap_or_else(|e| panic!("prune failed: {e:#}"));
+    serde_json::to_value(&reports[0].details).unwrap()
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 24, .. ProptestConfig::default() })]
+    #[test]
+    fn random_graphs_stay_runnable(seed in 0u64..1000, kinds in proptest::collection::vec(0u8..6, 1..6), ratio in 0.1f64..0.8, round in 0usize..3) {
+        let round_to = [1, 2, 4][round];
+        let original = random_model(seed, &kinds);
+        let mut pruned = original.clone();
+        let compensate = if seed % 2 == 0 { "lstsq" } else { "none" };
+        let report = prune(&mut pruned, ratio, round_to, compensate);
+        let feeds = inputs_for(&original, seed);
+        let before = runtime::load(Engine::Ort, &original, &feeds).unwrap().run(&feeds).unwrap();
+        let after = runtime::load(Engine::Ort, &pruned, &feeds).unwrap_or_else(|e| panic!("ORT rejects the pruned model: {e:#}\n{report}")).run(&feeds).unwrap();
+        prop_assert_eq!(&before[0].1.shape, &after[0].1.shape);
+        prop_assert!(after[0].1.as_f32().unwrap().iter().all(|v| v.is_finite()));
+        let (cb, ca) = (report["channels_before"].as_u64().unwrap(), report["channels_after"].as_u64().unwrap());
+        prop_assert!(ca < cb, "something was pruned: {}", report);
+        prop_assert!(report["macs_ratio"].as_f64().unwrap() < 1.0);
+    }
+}
+
+#[test]
+fn zero_ratio_is_the_identity_and_bad_ratios_are_refused() {
+    let original = random_model(7, &[0, 1, 2, 3, 4, 5]);
+    let mut same = original.clone();
+    let report = prune(&mut same, 0.0, 1, "none");
+    assert_eq!(report["channels_before"], report["channels_after"]);
+    let feeds = inputs_for(&original, 1);
+    let a = runtime::load(Engine::Ort, &original, &feeds).unwrap().run(&feeds).unwrap();
+    let b = runtime::load(Engine::Ort, &same, &feeds).unwrap().run(&feeds).unwrap();
+    assert!(a[0].1.bit_identical(&b[0].1));
+    let recipe = Recipe::parse("name: t\npasses:\n  - prune: {ratio: 1.0}\n").unwrap();
+    let err = run(&recipe, &mut original.clone(), &PassContext::default()).err().expect("ratio 1 is refused");
+    assert!(format!("{err:#}").contains("ratio"), "{err:#}");
+}
+
+#[test]
+fn every_fixture_meets_the_size_targets_and_runs_alike_on_ort_and_tract() {
+    let dir = tempfile::tempdir().unwrap();
+    for f in fixtures() {
+        let stem = f.file_stem().unwrap().to_str().unwrap();
+        let compile = |pipeline: &str, out: &str| {
+            let out = dir.path().join(format!("{stem}_{out}"));
+            let r = cli(&["compile", f.to_str().unwrap(), "--pipeline", pipeline, "--psf", "calib/radial_6x8.npy", "-o", out.to_str().unwrap(), "--json"]);
+            assert_eq!(r.code, 0, "{stem} {pipeline}: {}", r.stderr);
+            out.join("model.onnx")
+        };
+        let (dense, pruned) = (compile("passes/detect-f32.yaml", "f32"), compile("passes/detect-pruned-f32.yaml", "pruned"));
+        let (a, b) = (pdi_compile::inspect::inspect(&load(&dense)).unwrap(), pdi_compile::inspect::inspect(&load(&pruned)).unwrap());
+        let macs = b.macs.total as f64 / a.macs.total as f64;
+        let params = b.params.total as f64 / a.params.total as f64;
+        println!("{stem}: MACs {macs:.4}, params {params:.4}");
+        assert!(macs <= 0.32, "{stem}: MACs ratio {macs}");
+        assert!(params <= 0.30, "{stem}: params ratio {params}");
+        let shapes = |r: &pdi_compile::inspect::Report| r.outputs.iter().map(|o| (o.name.clone(), o.shape.clone())).collect::<Vec<_>>();
+        assert_eq!(shapes(&a), shapes(&b), "{stem}: outputs keep their shapes");
+        let feeds = inputs_for(&load(&pruned), 3);
+        let ort = runtime::load(Engine::Ort, &load(&pruned), &feeds).unwrap().run(&feeds).unwrap();
+        let tract = runtime::load(Engine::Tract, &load(&pruned), &feeds).unwrap().run(&feeds).unwrap();
+        for ((name, o), (_, t)) in ort.iter().zip(&tract) {
+            let e = rel_l2(o, t);
+            assert!(e <= 1e-4, "{stem} {name}: tract vs ORT rel L2 {e}");
+        }
+    }
+}
