@@ -38,3 +38,35 @@ fn trained_model_detects_and_survives_the_lossless_compile() {
     assert!((m5095 - card["map50_95"].as_f64().unwrap()).abs() < 2e-3, "card mAP@0.5:0.95 {} vs {m5095}", card["map50_95"]);
     assert!((candidate["map50_95"].as_f64().unwrap() - m5095).abs() < 1e-3, "lossless compile keeps accuracy");
 }
+
+/// Pruning the trained model: mAP against labels unpruned, pruned without compensation and
+/// pruned with compensation, printed side by side (the closing note quotes them), and the
+/// pass's own held-out comparison of the two.
+#[test]
+fn pruning_the_trained_model_reports_what_compensation_recovers() {
+    let model = repo().join("models/trained/pdinet_v5_tiny_trained.onnx");
+    let dir = tempfile::tempdir().unwrap();
+    let data = eval_set(dir.path());
+    let mut rows = Vec::new();
+    for mode in ["none", "lstsq"] {
+        let recipe = dir.path().join(format!("{mode}.yaml"));
+        let text = std::fs::read_to_string(repo().join("passes/detect-pruned-f32.yaml")).unwrap().replace("compensate: lstsq,", &format!("compensate: {mode},"));
+        std::fs::write(&recipe, text).unwrap();
+        let out = dir.path().join(mode);
+        let r = cli(&["compile", model.to_str().unwrap(), "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap(), "--json"]);
+        assert_eq!(r.code, 0, "{}", r.stderr);
+        let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+        let prune = report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == "prune").unwrap()["details"].clone();
+        let r = cli(&["verify", "--reference", model.to_str().unwrap(), "--candidate", out.join("model.onnx").to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "--data", data.to_str().unwrap(), "--runs", "1", "--no-tract", "--json"]);
+        assert_eq!(r.code, 0, "{}", r.stderr);
+        let j: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+        let d = &j["detection"];
+        rows.push((mode, d["reference_vs_labels"]["map50_95"].as_f64().unwrap(), d["candidate_vs_labels"]["map50_95"].as_f64().unwrap(), d["agreement"]["map50_95"].as_f64().unwrap(), prune));
+    }
+    for (mode, reference, candidate, agreement, prune) in &rows {
+        println!("compensate {mode}: mAP@.5:.95 unpruned {reference:.4}, pruned {candidate:.4}, agreement {agreement:.4}; held-out rel L2 {}; MACs x{:.3}", prune["output_rel_l2"], prune["macs_ratio"].as_f64().unwrap());
+    }
+    let lstsq = &rows[1].4["output_rel_l2"];
+    assert!(lstsq["uncompensated"]["detections"].is_f64() && lstsq["compensated"]["detections"].is_f64(), "the report compares both: {lstsq}");
+    assert!(rows[1].4["compensation"]["work"]["bias_corrected"].as_u64().unwrap() > 0);
+}

@@ -63,6 +63,8 @@ pub struct Prune {
 /// Pixel positions per frame entering a regression: enough to pin down a few hundred
 /// coefficients, few enough that the Gram matrix stays cheap at 640x480.
 const MAX_REGRESSION_POSITIONS: usize = 8192;
+/// Pixels of calibration frames compensation fits on (4 frames at 640x480, 21 at 256x192).
+const COMPENSATION_PIXELS: usize = 1 << 20;
 
 impl Pass for Prune {
     fn name(&self) -> &'static str {
@@ -104,7 +106,10 @@ impl Pass for Prune {
         check_outputs(&original, model)?;
 
         let (fit, held_out): (Vec<_>, Vec<_>) = feeds.iter().enumerate().partition(|(i, _)| feeds.len() < 4 || i % 4 != 3);
-        let fit: Vec<Vec<(String, Tensor)>> = fit.into_iter().map(|(_, f)| f.clone()).collect();
+        // Compensation runs both models once per depth and frame: at 640x480 a few frames
+        // already give hundreds of thousands of pixel samples.
+        let pixels = feeds.first().map_or(1, |f| f[0].1.len()).max(1);
+        let fit: Vec<Vec<(String, Tensor)>> = fit.into_iter().map(|(_, f)| f.clone()).take(COMPENSATION_PIXELS.div_ceil(pixels).max(2)).collect();
         let held_out: Vec<Vec<(String, Tensor)>> = if held_out.is_empty() { fit.clone() } else { held_out.into_iter().map(|(_, f)| f.clone()).collect() };
         let uncompensated = (o.compensate != Mode::None).then(|| model.clone());
         let comp = compensate::compensate(&original, model, &kept, &fit, &compensate::Options { mode: o.compensate, lambda: o.ridge, max_positions: MAX_REGRESSION_POSITIONS })?;

@@ -47,10 +47,10 @@ pub struct Options {
 }
 
 /// Largest unrolled receptive field (C'·k·k) fitted on the output directly: its Gram matrix
-/// costs samples × features² per layer, about a second at 640 features and 100k samples.
-pub const MAX_UNROLLED: usize = 640;
+/// costs samples × features² per layer (a 3x3 conv keeping 32 input channels is 288).
+pub const MAX_UNROLLED: usize = 320;
 /// Samples per unrolled feature in an output fit, over all frames.
-const SAMPLES_PER_FEATURE: usize = 64;
+const SAMPLES_PER_FEATURE: usize = 32;
 
 #[derive(Serialize, Default)]
 pub struct Report {
