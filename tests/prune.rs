@@ -120,10 +120,9 @@ fn random_model(seed: u64, kinds: &[u8]) -> ModelProto {
             }
         };
     }
-    let head = b.conv(&x, c, 12, 1, 1);
+    b.conv(&x, c, 12, 1, 1);
     let mut g = b.g;
     g.node.last_mut().unwrap().output[0] = "out".into();
-    let _ = head;
     let vi = |name: &str, shape: &[i64]| pdi_compile::onnx::proto::ValueInfoProto {
         name: name.into(),
         r#type: Some(pdi_compile::onnx::proto::TypeProto {
@@ -147,9 +146,10 @@ fn prune(model: &mut ModelProto, ratio: f64, round_to: usize, compensate: &str) 
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 24, .. ProptestConfig::default() })]
+    #![proptest_config(ProptestConfig { cases: 24, failure_persistence: None, .. ProptestConfig::default() })]
     #[test]
-    fn random_graphs_stay_runnable(seed in 0u64..1000, kinds in proptest::collection::vec(0u8..6, 1..6), ratio in 0.1f64..0.8, round in 0usize..3) {
+    fn random_graphs_stay_runnable(seed in 0u64..1000, kinds in proptest::collection::vec(0u8..6, 1..6), ratio in 0.3f64..0.8, round in 0usize..3) {
+        // From 0.3 every 16-channel group loses at least one multiple of round_to (<= 4).
         let round_to = [1, 2, 4][round];
         let original = random_model(seed, &kinds);
         let mut pruned = original.clone();
