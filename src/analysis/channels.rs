@@ -128,6 +128,19 @@ impl Builder {
         true
     }
 
+    /// Ties `parts`, laid end to end, to the channels of `whole` (Concat inputs, Split
+    /// outputs); false unless they cover it exactly.
+    fn couple_parts(&mut self, whole: &str, parts: &[String]) -> bool {
+        let mut at = 0;
+        for p in parts {
+            if !self.couple_at(whole, at, p) {
+                return false;
+            }
+            at += self.slots(p).map_or(0, |s| s.channels);
+        }
+        self.slots(whole).is_some_and(|s| s.channels == at)
+    }
+
     fn fix(&mut self, v: &str, why: &str) {
         if let Some(s) = self.slots(v) {
             for i in s.offset..s.offset + s.channels {
@@ -219,28 +232,8 @@ fn relate(b: &mut Builder, g: &Graph, inf: &Inferred, i: usize) {
         && match n.op_type.as_str() {
             "Conv" | "ConvTranspose" => relate_conv(b, g, n),
             "BatchNormalization" => n.output.iter().skip(1).all(|o| o.is_empty()) && n.input[1..].iter().all(|p| constant(p)) && b.couple(&n.input[0], &n.output[0]),
-            "Concat" => {
-                let axis = attr::int(n, "axis", 0);
-                (axis == 1 || axis == -4) && {
-                    let mut at = 0;
-                    n.input.iter().all(|x| {
-                        let ok = b.couple_at(&n.output[0], at, x);
-                        at += b.slots(x).map_or(0, |s| s.channels);
-                        ok
-                    }) && b.slots(&n.output[0]).is_some_and(|s| s.channels == at)
-                }
-            }
-            "Split" => {
-                let axis = attr::int(n, "axis", 0);
-                (axis == 1 || axis == -4) && {
-                    let mut at = 0;
-                    n.output.iter().all(|y| {
-                        let ok = b.couple_at(&n.input[0], at, y);
-                        at += b.slots(y).map_or(0, |s| s.channels);
-                        ok
-                    }) && b.slots(&n.input[0]).is_some_and(|s| s.channels == at)
-                }
-            }
+            "Concat" => channel_axis(n) && b.couple_parts(&n.output[0], &n.input),
+            "Split" => channel_axis(n) && b.couple_parts(&n.input[0], &n.output),
             "Slice" => relate_slice(b, g, n),
             op if op == "Resize" || op == "Upsample" => b.couple(&n.input[0], &n.output[0]) && resize_keeps_channels(g, n),
             "Clip" => n.input.iter().skip(1).all(|s| s.is_empty() || constant(s)) && b.couple(&n.input[0], &n.output[0]),
@@ -251,6 +244,11 @@ fn relate(b: &mut Builder, g: &Graph, inf: &Inferred, i: usize) {
     if !ok {
         fix_all(b, &why);
     }
+}
+
+/// Concat/Split along axis 1 of a 4-D value.
+fn channel_axis(n: &crate::onnx::proto::NodeProto) -> bool {
+    matches!(attr::int(n, "axis", 0), 1 | -4)
 }
 
 fn relate_conv(b: &mut Builder, g: &Graph, n: &crate::onnx::proto::NodeProto) -> bool {

@@ -32,6 +32,24 @@ pub fn set_initializer(g: &mut GraphProto, t: TensorProto) {
     }
 }
 
+/// Makes input `slot` of node `node` a new initializer holding `t`, named after the value it
+/// replaces plus `tag`. The name is fresh because the old constant may be shared with
+/// another node; a missing optional input (a conv without bias) is added.
+pub fn set_input_constant(g: &mut GraphProto, node: usize, slot: usize, t: &crate::tensor::Tensor, tag: &str) {
+    let n = &g.node[node];
+    let old = match n.input.get(slot).filter(|s| !s.is_empty()) {
+        Some(v) => v.clone(),
+        None => format!("{}_input{slot}", if n.name.is_empty() { &n.op_type } else { &n.name }),
+    };
+    let name = fresh_name(g, &format!("{old}_{tag}"));
+    set_initializer(g, super::tensor_proto::from_tensor(&name, t));
+    let n = &mut g.node[node];
+    if n.input.len() <= slot {
+        n.input.resize(slot + 1, String::new());
+    }
+    n.input[slot] = name;
+}
+
 /// A value name not used anywhere in `g`, derived from `base`.
 pub fn fresh_name(g: &GraphProto, base: &str) -> String {
     let used: HashSet<&str> = g

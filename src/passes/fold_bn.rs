@@ -13,7 +13,7 @@
 
 use crate::ir::Graph;
 use crate::onnx::attr;
-use crate::onnx::edit::{fresh_name, initializer, remove_nodes, replace_value, set_initializer};
+use crate::onnx::edit::{fresh_name, initializer, remove_nodes, replace_value, set_initializer, set_input_constant};
 use crate::onnx::proto::{GraphProto, ModelProto, NodeProto};
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
 use crate::pipeline::{Pass, PassContext};
@@ -158,18 +158,8 @@ fn fold_into_conv(g: &mut GraphProto, c: usize, p: &BnParams) -> Result<bool> {
         None => None,
     };
     let new_b = p.bias(conv_bias.as_deref());
-    // Fresh names: the original weights may be shared with another conv.
-    let wn = fresh_name(g, &format!("{}_bnfolded", conv.input[1]));
-    set_initializer(g, from_tensor(&wn, &Tensor::f32(w.shape.clone(), new_w)));
-    let bn_name = fresh_name(g, &format!("{}_bias_bnfolded", if conv.name.is_empty() { "conv" } else { &conv.name }));
-    set_initializer(g, from_tensor(&bn_name, &Tensor::f32(vec![cout], new_b)));
-    let node = &mut g.node[c];
-    node.input[1] = wn;
-    if node.input.len() < 3 {
-        node.input.push(bn_name);
-    } else {
-        node.input[2] = bn_name;
-    }
+    set_input_constant(g, c, 1, &Tensor::f32(w.shape.clone(), new_w), "bnfolded");
+    set_input_constant(g, c, 2, &Tensor::f32(vec![cout], new_b), "bnfolded");
     Ok(true)
 }
 

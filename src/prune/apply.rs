@@ -5,7 +5,7 @@
 
 use crate::analysis::channels::ChannelAnalysis;
 use crate::onnx::attr;
-use crate::onnx::edit::{fresh_name, initializer, set_initializer};
+use crate::onnx::edit::{fresh_name, initializer, set_initializer, set_input_constant};
 use crate::onnx::proto::{AttributeProto, DimensionValue, GraphProto, TypeValue};
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
 use crate::tensor::{Tensor, TensorData};
@@ -47,12 +47,12 @@ pub fn apply(g: &mut GraphProto, a: &ChannelAnalysis, kept: &HashMap<String, Vec
                 let xs: Vec<usize> = x.cloned().unwrap_or_else(|| (0..cin).collect());
                 let ys: Vec<usize> = y.cloned().unwrap_or_else(|| (0..cout).collect());
                 let (new_w, new_group) = slice_conv_weight(&n.op_type, &w, group, &xs, &ys)?;
-                replace_input(g, i, 1, &new_w, "pruned")?;
+                set_input_constant(g, i, 1, &new_w, "pruned");
                 rewritten += 1;
                 if let Some(b) = n.input.get(2).filter(|s| !s.is_empty()) {
                     if y.is_some() {
                         let bt = constant(g, b)?.select(0, &ys).ok_or_else(|| anyhow!("bias of {} does not match its channels", n.name))?;
-                        replace_input(g, i, 2, &bt, "pruned")?;
+                        set_input_constant(g, i, 2, &bt, "pruned");
                         rewritten += 1;
                     }
                 }
@@ -64,7 +64,7 @@ pub fn apply(g: &mut GraphProto, a: &ChannelAnalysis, kept: &HashMap<String, Vec
                 if let Some(ys) = k(out0) {
                     for p in 1..5 {
                         let t = constant(g, &n.input[p])?.select(0, ys).ok_or_else(|| anyhow!("BatchNorm {} parameters do not match", n.name))?;
-                        replace_input(g, i, p, &t, "pruned")?;
+                        set_input_constant(g, i, p, &t, "pruned");
                         rewritten += 1;
                     }
                 }
@@ -97,7 +97,7 @@ pub fn apply(g: &mut GraphProto, a: &ChannelAnalysis, kept: &HashMap<String, Vec
                     let mut v = constant(g, sz)?.as_i64s().ok_or_else(|| anyhow!("Resize sizes of {} are not integers", n.name))?;
                     if v.len() == 4 {
                         v[1] = ys.len() as i64;
-                        replace_input(g, i, 3, &Tensor::new(vec![4], TensorData::I64(v)), "pruned")?;
+                        set_input_constant(g, i, 3, &Tensor::new(vec![4], TensorData::I64(v)), "pruned");
                         rewritten += 1;
                     }
                 }
@@ -110,7 +110,7 @@ pub fn apply(g: &mut GraphProto, a: &ChannelAnalysis, kept: &HashMap<String, Vec
                         let r = t.dims.len();
                         if r >= 3 && t.dims[r - 3] > 1 {
                             let sliced = to_tensor(t)?.select(r - 3, ys).ok_or_else(|| anyhow!("constant '{name}' of {} does not match its channels", n.name))?;
-                            replace_input(g, i, p, &sliced, "pruned")?;
+                            set_input_constant(g, i, p, &sliced, "pruned");
                             rewritten += 1;
                         }
                     }
@@ -132,14 +132,6 @@ pub fn apply(g: &mut GraphProto, a: &ChannelAnalysis, kept: &HashMap<String, Vec
 
 fn constant(g: &GraphProto, name: &str) -> Result<Tensor> {
     to_tensor(initializer(g, name).ok_or_else(|| anyhow!("'{name}' is not a constant"))?)
-}
-
-fn replace_input(g: &mut GraphProto, node: usize, slot: usize, t: &Tensor, tag: &str) -> Result<()> {
-    let base = format!("{}_{tag}", g.node[node].input[slot]);
-    let name = fresh_name(g, &base);
-    set_initializer(g, from_tensor(&name, t));
-    g.node[node].input[slot] = name;
-    Ok(())
 }
 
 fn set_int(n: &mut crate::onnx::proto::NodeProto, name: &str, v: i64) {
@@ -237,7 +229,7 @@ fn rewrite_slice(g: &mut GraphProto, i: usize, xs: &[usize], channels: usize) ->
     let count_below = |p: usize| xs.iter().filter(|&&x| x < p).count() as i64;
     starts[k] = count_below(norm(starts[k]));
     ends[k] = count_below(norm(ends[k]));
-    replace_input(g, i, 1, &Tensor::new(vec![starts.len()], TensorData::I64(starts)), "pruned")?;
-    replace_input(g, i, 2, &Tensor::new(vec![ends.len()], TensorData::I64(ends)), "pruned")?;
+    set_input_constant(g, i, 1, &Tensor::new(vec![starts.len()], TensorData::I64(starts)), "pruned");
+    set_input_constant(g, i, 2, &Tensor::new(vec![ends.len()], TensorData::I64(ends)), "pruned");
     Ok(2)
 }

@@ -18,9 +18,9 @@
 use super::ridge::Moments;
 use crate::ir::{infer, Graph};
 use crate::onnx::attr;
-use crate::onnx::edit::{expose_outputs, fresh_name, initializer, set_initializer};
+use crate::onnx::edit::{expose_outputs, initializer, set_input_constant};
 use crate::onnx::proto::{GraphProto, ModelProto, NodeProto};
-use crate::onnx::tensor_proto::{from_tensor, to_tensor};
+use crate::onnx::tensor_proto::to_tensor;
 use crate::runtime::ort_runtime::OrtRuntime;
 use crate::runtime::Runtime;
 use crate::tensor::Tensor;
@@ -277,7 +277,8 @@ pub fn compensate(original: &ModelProto, pruned: &mut ModelProto, kept: &HashMap
                         Fit::Input => report.refit_input += 1,
                         Fit::Bias => {}
                     }
-                    set_conv_params(g, j.node, &w, &b);
+                    set_input_constant(g, j.node, 1, &w, "compensated");
+                    set_input_constant(g, j.node, 2, &b, "compensated");
                     report.bias_corrected += 1;
                 }
                 None => report.not_refit.push(name),
@@ -431,20 +432,6 @@ impl Accumulator {
 
 fn finite(j: &Job, weight: Vec<f32>, bias: Vec<f32>, how: Fit) -> Option<(Tensor, Tensor, Fit)> {
     weight.iter().chain(&bias).all(|v| v.is_finite()).then(|| (Tensor::f32(j.w_new.shape.clone(), weight), Tensor::f32(vec![j.ys.len()], bias), how))
-}
-
-fn set_conv_params(g: &mut GraphProto, node: usize, w: &Tensor, b: &Tensor) {
-    let wn = fresh_name(g, &format!("{}_compensated", g.node[node].input[1]));
-    set_initializer(g, from_tensor(&wn, w));
-    let bn = fresh_name(g, &format!("{}_bias_compensated", if g.node[node].name.is_empty() { "conv" } else { &g.node[node].name }));
-    set_initializer(g, from_tensor(&bn, b));
-    let n = &mut g.node[node];
-    n.input[1] = wn;
-    if n.input.len() < 3 {
-        n.input.push(bn);
-    } else {
-        n.input[2] = bn;
-    }
 }
 
 #[cfg(test)]
