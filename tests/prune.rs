@@ -210,3 +210,22 @@ fn every_fixture_meets_the_size_targets_and_runs_alike_on_ort_and_tract() {
         }
     }
 }
+
+#[test]
+fn negative_channel_axis_is_the_channel_axis() {
+    // Concat on axis -3 of a 4-D value is a channel concat; axis -4 is the batch axis.
+    let concat_axes = |model: &mut ModelProto, axis: i64| {
+        for n in &mut model.graph.as_mut().unwrap().node {
+            if n.op_type == "Concat" {
+                n.attribute.iter_mut().find(|a| a.name == "axis").unwrap().i = Some(axis);
+            }
+        }
+    };
+    let mut model = random_model(3, &[1]);
+    concat_axes(&mut model, -3);
+    let g = model.graph.as_ref().unwrap();
+    let graph = pdi_compile::ir::Graph::build(g).unwrap();
+    let inf = pdi_compile::ir::infer(&graph);
+    let a = pdi_compile::analysis::channels::analyse(&graph, &inf, &[]);
+    assert!(a.groups.iter().all(|gr| gr.frozen.as_deref().is_none_or(|w| !w.contains("Concat"))), "a channel concat is analysed");
+}

@@ -248,7 +248,7 @@ fn relate(b: &mut Builder, g: &Graph, inf: &Inferred, i: usize) {
 
 /// Concat/Split along axis 1 of a 4-D value.
 fn channel_axis(n: &crate::onnx::proto::NodeProto) -> bool {
-    matches!(attr::int(n, "axis", 0), 1 | -4)
+    matches!(attr::int(n, "axis", 0), 1 | -3)
 }
 
 fn relate_conv(b: &mut Builder, g: &Graph, n: &crate::onnx::proto::NodeProto) -> bool {
