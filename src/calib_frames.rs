@@ -3,7 +3,9 @@
 //! pipeline: synthetic thermal scenes through the single-lens PSF of
 //! `calib/lens_single_lwir.yaml` plus detector noise, the degradation PDI-Net is trained on.
 
+use crate::analysis::partition::image_input;
 use crate::frames::{self, Frame};
+use crate::ir::{Graph, Inferred};
 use crate::optics::degrade::{add_noise, NoiseModel, SpatialBlur, FULL_SCALE_14BIT};
 use crate::optics::lens::Lens;
 use crate::optics::rng::Rng;
@@ -63,4 +65,19 @@ pub fn calibration_frames(folder: Option<&Path>, n: usize, height: usize, width:
         .collect();
     pb.finish_and_clear();
     Ok(CalibrationSet { frames, source: format!("{n} physics-pipeline frames ({}, q {} sigma {}, seed {seed})", lens.name, NOISE.q, NOISE.sigma) })
+}
+
+/// Calibration feeds for a model: `n` frames fed to its single-channel image input (every
+/// other input must already be bound, as `bind-psf` binds the blur map), and their source.
+pub fn image_feeds(graph: &Graph, inf: &Inferred, folder: Option<&Path>, n: usize, seed: u64) -> Result<(Vec<Vec<(String, Tensor)>>, String)> {
+    let image = image_input(graph, inf).ok_or_else(|| anyhow!("calibration needs a [1, C, H, W] image input"))?;
+    if let Some(other) = graph.inputs.iter().find(|v| v.name != image) {
+        bail!("input '{}' has no calibration value; run bind-psf (with --psf) first", other.name);
+    }
+    let s = inf.shape(&image).ok_or_else(|| anyhow!("image input '{image}' has no static shape"))?;
+    if s[1] != 1 {
+        bail!("image input '{image}' has {} channels; calibration frames are single-channel thermal images", s[1]);
+    }
+    let set = calibration_frames(folder, n, s[2], s[3], seed)?;
+    Ok((set.frames.into_iter().map(|f| vec![(image.clone(), f.image)]).collect(), set.source))
 }

@@ -19,6 +19,7 @@ pub mod onnx;
 pub mod optics;
 pub mod passes;
 pub mod pipeline;
+pub mod quant;
 pub mod prune;
 pub mod runtime;
 pub mod tensor;

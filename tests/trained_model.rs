@@ -70,3 +70,27 @@ fn pruning_the_trained_model_reports_what_compensation_recovers() {
     assert!(lstsq["uncompensated"]["detections"].is_f64() && lstsq["compensated"]["detections"].is_f64(), "the report compares both: {lstsq}");
     assert!(rows[1].4["compensation"]["work"]["bias_corrected"].as_u64().unwrap() > 0);
 }
+
+/// INT8 and FP16 compiles of the trained model against labels: INT8 within 0.01 mAP@0.5:0.95
+/// of the float compile, FP16 within 0.002 (the figures the closing note quotes).
+#[test]
+fn int8_and_fp16_keep_the_trained_models_accuracy() {
+    let model = repo().join("models/trained/pdinet_v5_tiny_trained.onnx");
+    let dir = tempfile::tempdir().unwrap();
+    let data = eval_set(dir.path());
+    let mut maps = Vec::new();
+    for recipe in ["detect-f32", "detect-int8", "detect-fp16"] {
+        let out = dir.path().join(recipe);
+        let r = cli(&["compile", model.to_str().unwrap(), "--pipeline", &format!("passes/{recipe}.yaml"), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap(), "--json"]);
+        assert_eq!(r.code, 0, "{}", r.stderr);
+        let r = cli(&["verify", "--reference", model.to_str().unwrap(), "--candidate", out.join("model.onnx").to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "--data", data.to_str().unwrap(), "--runs", "1", "--no-tract", "--json"]);
+        assert_eq!(r.code, 0, "{}", r.stderr);
+        let j: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+        let d = &j["detection"];
+        let m = d["candidate_vs_labels"]["map50_95"].as_f64().unwrap();
+        println!("{recipe}: mAP@.5:.95 vs labels {m:.4}, agreement with the original {:.4}", d["agreement"]["map50_95"].as_f64().unwrap());
+        maps.push(m);
+    }
+    assert!((maps[1] - maps[0]).abs() <= 0.01, "INT8 {} vs f32 {}", maps[1], maps[0]);
+    assert!((maps[2] - maps[0]).abs() <= 0.002, "FP16 {} vs f32 {}", maps[2], maps[0]);
+}

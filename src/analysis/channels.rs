@@ -200,7 +200,7 @@ pub fn analyse(g: &Graph, inf: &Inferred, protected: &[String]) -> ChannelAnalys
 
 /// Convolutions whose output reaches a graph output without passing another convolution:
 /// the detector's last layers, whose channel layout is the output format.
-fn head_convolutions(g: &Graph) -> Vec<usize> {
+pub(crate) fn head_convolutions(g: &Graph) -> Vec<usize> {
     let mut found = Vec::new();
     let mut seen = HashSet::new();
     let mut stack: Vec<&str> = g.proto.output.iter().map(|o| o.name.as_str()).collect();

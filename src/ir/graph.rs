@@ -78,6 +78,19 @@ impl<'m> Graph<'m> {
     }
 
     /// Node indices that `values` depend on (their backward cone), in no particular order.
+    /// Nodes reachable from the outputs of `from` (not `from` themselves).
+    pub fn downstream_of(&self, from: &std::collections::HashSet<usize>) -> std::collections::HashSet<usize> {
+        let mut seen = std::collections::HashSet::new();
+        let next = |i: usize| self.node(i).output.iter().flat_map(|o| self.consumers_of(o).to_vec()).collect::<Vec<_>>();
+        let mut stack: Vec<usize> = from.iter().flat_map(|&i| next(i)).collect();
+        while let Some(i) = stack.pop() {
+            if seen.insert(i) {
+                stack.extend(next(i));
+            }
+        }
+        seen
+    }
+
     pub fn cone(&self, values: impl IntoIterator<Item = &'m str>) -> Vec<bool> {
         let mut seen = vec![false; self.proto.node.len()];
         let mut stack: Vec<&str> = values.into_iter().collect();

@@ -15,22 +15,45 @@ pub struct TensorError {
 
 /// Error of `candidate` against `reference` (same length, f64 accumulation).
 pub fn compare(reference: &[f64], candidate: &[f64]) -> TensorError {
-    let (mut diff2, mut ref2, mut cand2, mut dot, mut max_abs, mut non_finite) = (0.0, 0.0, 0.0, 0.0, 0.0f64, 0);
-    for (&a, &b) in reference.iter().zip(candidate) {
-        if !b.is_finite() && a.is_finite() {
-            non_finite += 1;
-            continue;
+    let mut sums = ErrorSums::default();
+    sums.add(reference.iter().copied(), candidate.iter().copied());
+    sums.finish()
+}
+
+/// Running sums behind [`compare`], for errors accumulated over many frames without keeping
+/// the frames.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ErrorSums {
+    diff2: f64,
+    ref2: f64,
+    cand2: f64,
+    dot: f64,
+    max_abs: f64,
+    non_finite: usize,
+}
+
+impl ErrorSums {
+    pub fn add(&mut self, reference: impl Iterator<Item = f64>, candidate: impl Iterator<Item = f64>) {
+        for (a, b) in reference.zip(candidate) {
+            if !b.is_finite() && a.is_finite() {
+                self.non_finite += 1;
+                continue;
+            }
+            let d = a - b;
+            self.diff2 += d * d;
+            self.ref2 += a * a;
+            self.cand2 += b * b;
+            self.dot += a * b;
+            self.max_abs = self.max_abs.max(d.abs());
         }
-        let d = a - b;
-        diff2 += d * d;
-        ref2 += a * a;
-        cand2 += b * b;
-        dot += a * b;
-        max_abs = max_abs.max(d.abs());
     }
-    let rel_l2 = if ref2 > 0.0 { (diff2 / ref2).sqrt() } else if diff2 == 0.0 { 0.0 } else { f64::INFINITY };
-    let cosine = if ref2 > 0.0 && cand2 > 0.0 { dot / (ref2.sqrt() * cand2.sqrt()) } else if ref2 == cand2 { 1.0 } else { 0.0 };
-    TensorError { max_abs, rel_l2, cosine, non_finite }
+
+    pub fn finish(&self) -> TensorError {
+        let (diff2, ref2, cand2) = (self.diff2, self.ref2, self.cand2);
+        let rel_l2 = if ref2 > 0.0 { (diff2 / ref2).sqrt() } else if diff2 == 0.0 { 0.0 } else { f64::INFINITY };
+        let cosine = if ref2 > 0.0 && cand2 > 0.0 { self.dot / (ref2.sqrt() * cand2.sqrt()) } else if ref2 == cand2 { 1.0 } else { 0.0 };
+        TensorError { max_abs: self.max_abs, rel_l2, cosine, non_finite: self.non_finite }
+    }
 }
 
 #[cfg(test)]

@@ -8,14 +8,16 @@ pub mod fold_bn;
 pub mod fold_constants;
 pub mod fold_psf_gates;
 pub mod prune;
+pub mod quantize;
 pub mod resize_to_deconv;
 pub mod strip_recon;
+pub mod to_fp16;
 
 use crate::pipeline::{Pass, PassSpec};
 use anyhow::{anyhow, bail, Result};
 
 /// Every pass this build knows, by the name recipes use.
-pub const KNOWN: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "prune"];
+pub const KNOWN: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "prune", "quantize", "fp16"];
 
 pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
     Ok(match spec.name.as_str() {
@@ -28,6 +30,8 @@ pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
         "dce" => Box::new(dce::Dce),
         "cleanup" => Box::new(cleanup::Cleanup),
         "prune" => Box::new(prune::Prune { options: options(spec)? }),
+        "fp16" => Box::new(to_fp16::ToFp16 { options: options(spec)? }),
+        "quantize" => Box::new(quantize::Quantize { options: options(spec)? }),
         other => bail!("unknown pass '{other}' in the pipeline (known passes: {})", KNOWN.join(", ")),
     })
 }

@@ -14,8 +14,7 @@
 //! compensation.
 
 use crate::analysis::channels::analyse;
-use crate::analysis::partition::image_input;
-use crate::calib_frames::calibration_frames;
+use crate::calib_frames::image_feeds;
 use crate::ir::{infer, Graph};
 use crate::metrics::tensor_error::compare;
 use crate::onnx::edit::expose_outputs;
@@ -85,7 +84,7 @@ impl Pass for Prune {
         // Frames are needed for activation importance and compensation; otherwise they only
         // measure the result, and a model they cannot feed is measured without them.
         let needs_frames = o.importance == Criterion::Activation || o.compensate != Mode::None;
-        let (feeds, source) = match calibration_feeds(&graph, &inf, cx, o) {
+        let (feeds, source) = match image_feeds(&graph, &inf, cx.calib.as_deref(), o.calib_frames, o.seed) {
             Ok(f) => f,
             Err(e) if needs_frames => return Err(e),
             Err(e) => (Vec::new(), format!("none ({e})")),
@@ -144,20 +143,6 @@ impl Pass for Prune {
             "groups": plan.groups,
         }))
     }
-}
-
-/// Feeds for the calibration frames: the image input only (other inputs must be bound).
-fn calibration_feeds(graph: &Graph, inf: &crate::ir::Inferred, cx: &PassContext, o: &Options) -> Result<(Vec<Vec<(String, Tensor)>>, String)> {
-    let image = image_input(graph, inf).ok_or_else(|| anyhow!("prune needs a [1, C, H, W] image input to run calibration frames"))?;
-    if let Some(other) = graph.inputs.iter().find(|v| v.name != image) {
-        bail!("input '{}' has no calibration value; run bind-psf (with --psf) before prune", other.name);
-    }
-    let s = inf.shape(&image).ok_or_else(|| anyhow!("image input '{image}' has no static shape"))?;
-    if s[1] != 1 {
-        bail!("image input '{image}' has {} channels; calibration frames are single-channel thermal images", s[1]);
-    }
-    let set = calibration_frames(cx.calib.as_deref(), o.calib_frames, s[2], s[3], o.seed)?;
-    Ok((set.frames.into_iter().map(|f| vec![(image.clone(), f.image)]).collect(), set.source))
 }
 
 /// Mean |activation| per channel of every analysed value read by a convolution.

@@ -28,6 +28,31 @@ impl OrtRuntime {
         Ok(OrtRuntime { session })
     }
 
+    /// The graph ONNX Runtime actually runs for `model` after its optimizations (fusions
+    /// such as DQ -> Conv -> Q into QLinearConv), as op type -> count.
+    pub fn optimized_ops(model: &ModelProto) -> Result<std::collections::BTreeMap<String, usize>> {
+        static SEQ: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+        let path = std::env::temp_dir().join(format!("pdi-compile-optimized-{}-{}.onnx", std::process::id(), SEQ.fetch_add(1, std::sync::atomic::Ordering::Relaxed)));
+        let env = super::ort_lib::environment()?;
+        let bytes = model.encode_to_vec();
+        let built = Session::builder(env)
+            .and_then(|b| b.with_optimization_level(GraphOptimizationLevel::Level3).map_err(Into::into))
+            .and_then(|b| b.with_intra_threads(1).map_err(Into::into))
+            .and_then(|b| b.with_optimized_model_path(&path).map_err(Into::into))
+            .and_then(|mut b| b.commit_from_memory(&bytes))
+            .map_err(|e| anyhow!("ONNX Runtime rejected the model: {e}"));
+        let counted = built.and_then(|_| {
+            let m = crate::onnx::io::load(&path)?.model;
+            let mut ops = std::collections::BTreeMap::new();
+            for n in m.graph.iter().flat_map(|g| &g.node) {
+                *ops.entry(n.op_type.clone()).or_insert(0) += 1;
+            }
+            Ok(ops)
+        });
+        let _ = std::fs::remove_file(&path);
+        counted
+    }
+
     pub fn output_names(&self) -> Vec<String> {
         self.session.outputs().iter().map(|o| o.name().to_string()).collect()
     }

@@ -233,7 +233,7 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
 }
 
 /// Values of channels `range` of a detection tensor ([1,N,C] for v5, [1,C,N] for v8).
-fn select_channels(kind: HeadKind, t: &Tensor, range: std::ops::Range<usize>) -> Vec<f64> {
+pub(crate) fn select_channels(kind: HeadKind, t: &Tensor, range: std::ops::Range<usize>) -> Vec<f64> {
     let v = t.data.to_f64();
     match kind {
         HeadKind::Yolov5Anchor => v.chunks_exact(t.shape[2]).flat_map(|row| row[range.clone()].to_vec()).collect(),

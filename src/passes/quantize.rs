@@ -1,0 +1,202 @@
+//! `quantize`: post-training INT8 in QDQ form, calibrated on camera (or simulated) frames.
+//!
+//! Needs: a float detection graph with constant weights and one image input (the lossless
+//! passes first; prune before it if wanted); opset >= 13.
+//! Guarantees: outputs keep names, shapes and float type; the head convolutions' outputs and
+//! the decode after them stay float (boxes and scores never share a scale); every scale is
+//! finite and positive, whatever the frames (a constant or all-zero activation gets a fixed
+//! scale and a warning).
+//! Reports: the range method and frames, warnings, every quantized layer's error against
+//! float alone and accumulated (worst first), the bias shifts corrected, the layers mixed
+//! precision kept float and why, and the outputs' error per channel group on held-out frames.
+
+use crate::calib_frames::image_feeds;
+use crate::ir::{infer, Graph};
+use crate::onnx::proto::ModelProto;
+use crate::pipeline::{Pass, PassContext};
+use crate::quant::attribution::{self, worst_rel_l2, LayerError};
+use crate::quant::collect::histograms;
+use crate::quant::params::{ActivationType, QParams};
+use crate::quant::plan::{plan, Plan};
+use crate::quant::qdq::{emit, EmitOptions};
+use crate::quant::range::{choose, Method};
+use anyhow::{anyhow, bail, Result};
+use std::collections::{HashMap, HashSet};
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Options {
+    pub method: Method,
+    /// Kept fraction for `percentile`, in percent.
+    pub percentile: f64,
+    pub activations: ActivationType,
+    /// 8, or 7 for ONNX Runtime on AVX2 without VNNI (its u8s8 kernels sum product pairs in
+    /// int16, which full-range 8-bit weights saturate).
+    pub weight_bits: u32,
+    /// Frames whose activations set the ranges.
+    pub calib_frames: usize,
+    /// Frames (of the calibration set) for bias correction, error attribution and mixed precision.
+    pub analysis_frames: usize,
+    /// Further frames, never used to calibrate, on which the result is measured.
+    pub held_out_frames: usize,
+    pub bias_correction: bool,
+    /// Largest rel L2 of any output channel group against float; layers are kept float,
+    /// most sensitive first, until it holds. None: no mixed precision.
+    pub error_budget: Option<f64>,
+    pub max_float_layers: usize,
+    /// Nodes (or their output values) to leave in float.
+    pub keep_float: Vec<String>,
+    pub seed: u64,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            method: Method::Mse,
+            percentile: 99.99,
+            activations: ActivationType::U8,
+            weight_bits: 8,
+            calib_frames: 64,
+            analysis_frames: 8,
+            held_out_frames: 8,
+            bias_correction: true,
+            error_budget: None,
+            max_float_layers: 8,
+            keep_float: Vec::new(),
+            seed: 0,
+        }
+    }
+}
+
+pub struct Quantize {
+    pub options: Options,
+}
+
+/// Layers listed in the report's attribution table (worst first); the rest are counted.
+const REPORTED_LAYERS: usize = 40;
+
+impl Pass for Quantize {
+    fn name(&self) -> &'static str {
+        "quantize"
+    }
+
+    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+        let o = &self.options;
+        if !(2..=8).contains(&o.weight_bits) {
+            bail!("weight_bits {} must be between 2 and 8", o.weight_bits);
+        }
+        if !(50.0..=100.0).contains(&o.percentile) {
+            bail!("percentile {} must be between 50 and 100", o.percentile);
+        }
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let float = model.clone();
+        let g = float.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+        let graph = Graph::build(g)?;
+        let inf = infer(&graph);
+        let (mut feeds, source) = image_feeds(&graph, &inf, cx.calib.as_deref(), o.calib_frames.max(1) + o.held_out_frames, o.seed)?;
+        let calib = o.calib_frames.max(1);
+        // Held-out frames come after the calibration frames; a folder too small for both
+        // measures on its last calibration frames, and the report says so.
+        let (held_out, overlap) = if feeds.len() > calib { (feeds.split_off(calib), false) } else { (feeds.iter().rev().take(o.held_out_frames.max(1)).cloned().collect(), true) };
+        let analysis: Vec<_> = feeds.iter().take(o.analysis_frames.max(1)).cloned().collect();
+
+        let keep: HashSet<String> = o.keep_float.iter().cloned().collect();
+        let base = plan(&graph, &keep);
+        let values: Vec<String> = base.quantized_values(&graph).into_iter().collect();
+        let mut hists = histograms(&float, &values.iter().filter(|v| !is_input(&graph, v)).cloned().collect::<Vec<_>>(), &feeds, threads)?;
+        for v in values.iter().filter(|v| is_input(&graph, v)) {
+            let h = hists.entry(v.clone()).or_default();
+            for f in &feeds {
+                if let Some(t) = f.iter().find(|(n, _)| n == v).and_then(|(_, t)| t.as_f32()) {
+                    h.add(t);
+                }
+            }
+        }
+        let mut warnings = Vec::new();
+        let mut params: HashMap<String, QParams> = HashMap::new();
+        for v in &values {
+            let h = &hists[v];
+            let (lo, hi) = choose(h, o.method, o.percentile, o.activations);
+            let p = QParams::activation(lo, hi, o.activations);
+            if h.non_finite > 0 {
+                warnings.push(format!("'{v}' had {} NaN/infinite values on the calibration frames; they were ignored", h.non_finite));
+            }
+            if p.is_degenerate() {
+                warnings.push(format!("'{v}' is constant zero on the calibration frames; it gets a fixed scale {:.6}", p.scale));
+            }
+            params.insert(v.clone(), p);
+        }
+
+        let alone = attribution::alone(&float, &base, &params, o.activations, o.weight_bits, &analysis, threads)?;
+        let shifts = if o.bias_correction { alone.conv_shift.clone() } else { HashMap::new() };
+        let emit_with = |p: &Plan| emit(&float, p, &EmitOptions { params: &params, activations: o.activations, weight_bits: o.weight_bits, bias_shift: &shifts });
+        let (mut quantized, mut emitted) = emit_with(&base)?;
+
+        // Mixed precision: the layers whose alone error is largest go float, one at a time,
+        // until the outputs are within the budget.
+        let mut kept_float: Vec<serde_json::Value> = Vec::new();
+        let mut current = base.clone();
+        if let Some(budget) = o.error_budget {
+            let mut ranked: Vec<&LayerError> = alone.layers.iter().collect();
+            ranked.sort_by(|a, b| b.alone.rel_l2.total_cmp(&a.alone.rel_l2));
+            let mut worst = worst_rel_l2(&attribution::output_errors(&float, &quantized, &analysis, threads)?);
+            let mut names = keep.clone();
+            for layer in ranked.into_iter().take(o.max_float_layers) {
+                if worst <= budget {
+                    break;
+                }
+                names.insert(layer.node.clone());
+                current = plan(&graph, &names);
+                (quantized, emitted) = emit_with(&current)?;
+                let before = worst;
+                worst = worst_rel_l2(&attribution::output_errors(&float, &quantized, &analysis, threads)?);
+                kept_float.push(serde_json::json!({"node": layer.node, "op": layer.op, "alone_rel_l2": layer.alone.rel_l2, "output_rel_l2_before": before, "output_rel_l2_after": worst}));
+            }
+            if worst > budget {
+                warnings.push(format!("error budget {budget} not met: worst output rel L2 {worst:.4} after keeping {} layers float (max_float_layers {})", kept_float.len(), o.max_float_layers));
+            }
+        }
+
+        let accumulated = attribution::accumulated(&float, &quantized, &emitted.dequantized, &analysis, threads)?;
+        let mut layers = alone.layers.clone();
+        for l in &mut layers {
+            l.accumulated = accumulated.get(&l.value).copied();
+        }
+        layers.retain(|l| current.quantized.contains(&alone.node_of_value[&l.value]));
+        layers.sort_by(|a, b| b.accumulated.map_or(b.alone.rel_l2, |e| e.rel_l2).total_cmp(&a.accumulated.map_or(a.alone.rel_l2, |e| e.rel_l2)));
+        let outputs = attribution::output_errors(&float, &quantized, &held_out, threads)?;
+        if emitted.biases_clamped > 0 {
+            warnings.push(format!("{} int32 bias values were clamped (input x weight scale too small for the bias)", emitted.biases_clamped));
+        }
+        // What ONNX Runtime makes of it: QLinearConv etc. where it fused, Conv where it did not.
+        let ort_ops = crate::runtime::ort_runtime::OrtRuntime::optimized_ops(&quantized)?;
+        *model = quantized;
+        super::dce::eliminate(super::graph_mut(model)?)?;
+        let float_nodes: Vec<serde_json::Value> = current.float.iter().map(|(&i, why)| serde_json::json!({"node": g.node[i].name, "op": g.node[i].op_type, "why": why})).collect();
+        Ok(serde_json::json!({
+            "method": o.method,
+            "percentile": (o.method == Method::Percentile).then_some(o.percentile),
+            "activations": o.activations,
+            "weight_bits": o.weight_bits,
+            "calibration": source,
+            "calibration_frames": feeds.len(),
+            "analysis_frames": analysis.len(),
+            "held_out_frames": held_out.len(),
+            "held_out_overlaps_calibration": overlap,
+            "bias_corrected_convolutions": shifts.len(),
+            "emitted": emitted,
+            "warnings": warnings,
+            "ort_optimized_ops": ort_ops,
+            "mixed_precision": { "error_budget": o.error_budget, "kept_float": kept_float },
+            "float_nodes": float_nodes,
+            "output_errors": outputs,
+            "worst_output_rel_l2": worst_rel_l2(&outputs),
+            "layers_quantized": layers.len(),
+            "layers": layers.iter().take(REPORTED_LAYERS).collect::<Vec<_>>(),
+        }))
+    }
+}
+
+fn is_input(g: &Graph, v: &str) -> bool {
+    g.inputs.iter().any(|i| i.name == v)
+}

@@ -1,0 +1,189 @@
+//! Where quantization error comes from, like RKNN's accuracy_analysis: for every quantized
+//! value, its error against float both accumulated along the quantized graph and for its
+//! layer alone (float inputs quantized once, that layer's weights quantized); plus the
+//! per-channel mean shift of each convolution alone, which bias correction removes.
+//!
+//! "Alone" errors come from one run of a single model: the float graph plus, beside every
+//! quantized node, a clone reading fake-quantized copies of its float inputs.
+
+use super::params::{quantize_weights, ActivationType, QParams};
+use super::plan::Plan;
+use super::qdq::add_qdq;
+use crate::analysis::head;
+use crate::detect::decode::channel_groups;
+use crate::ir::{infer, Graph};
+use crate::metrics::tensor_error::{ErrorSums, TensorError};
+use crate::onnx::edit::{expose_outputs, fresh_name, set_initializer, sort_topologically};
+use crate::onnx::proto::ModelProto;
+use crate::onnx::tensor_proto::{from_tensor, to_tensor};
+use crate::runtime::ort_runtime::OrtRuntime;
+use crate::runtime::Runtime;
+use crate::tensor::Tensor;
+use anyhow::{anyhow, Result};
+use ort::session::builder::GraphOptimizationLevel;
+use std::collections::{BTreeMap, HashMap};
+
+pub type Feeds = [Vec<(String, Tensor)>];
+
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct LayerError {
+    pub node: String,
+    pub op: String,
+    pub value: String,
+    /// This layer alone: float inputs quantized, its own weights and output quantized.
+    pub alone: TensorError,
+    /// The value in the quantized model against float (errors of all earlier layers included).
+    pub accumulated: Option<TensorError>,
+}
+
+pub struct AloneAnalysis {
+    pub layers: Vec<LayerError>,
+    /// Conv node index -> mean (quantized - float) per output channel.
+    pub conv_shift: HashMap<usize, Vec<f64>>,
+    pub node_of_value: HashMap<String, usize>,
+}
+
+/// Runs the float model with a fake-quantized clone of every quantized node beside it.
+pub fn alone(model: &ModelProto, plan: &Plan, params: &HashMap<String, QParams>, ty: ActivationType, weight_bits: u32, feeds: &Feeds, threads: usize) -> Result<AloneAnalysis> {
+    let src = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+    let graph = Graph::build(src)?;
+    let mut g = src.clone();
+    let param = |v: &str| params.get(plan.root(v)).copied();
+    let mut fake_inputs: HashMap<String, String> = HashMap::new();
+    let mut pairs: Vec<(usize, String, String)> = Vec::new(); // node, float value, clone's value
+    for &i in &plan.quantized {
+        let mut n = src.node[i].clone();
+        for s in Plan::activation_slots(&graph, i) {
+            let v = n.input[s].clone();
+            let Some(p) = param(&v).or_else(|| constant_params(&graph, &v, ty)) else { continue };
+            let fq = match fake_inputs.get(&v) {
+                Some(f) => f.clone(),
+                None => {
+                    let f = add_qdq(&mut g, &v, &p, ty);
+                    fake_inputs.insert(v.clone(), f.clone());
+                    f
+                }
+            };
+            n.input[s] = fq;
+        }
+        if n.op_type == "Conv" {
+            let w = to_tensor(graph.initializers[n.input[1].as_str()])?;
+            let q = quantize_weights(w.as_f32().expect("planned"), w.shape[0], weight_bits);
+            let per = w.len() / w.shape[0].max(1);
+            let deq: Vec<f32> = q.values.iter().enumerate().map(|(k, &x)| (x as f64 * q.scales[k / per.max(1)]) as f32).collect();
+            let name = fresh_name(&g, &format!("{}_fake_quantized", n.input[1]));
+            set_initializer(&mut g, from_tensor(&name, &Tensor::f32(w.shape.clone(), deq)));
+            n.input[1] = name;
+        }
+        for o in n.output.iter_mut().filter(|o| !o.is_empty()) {
+            let alone = fresh_name(&g, &format!("{o}_alone"));
+            pairs.push((i, o.clone(), alone.clone()));
+            *o = alone;
+        }
+        n.name = format!("{}_alone", n.name);
+        g.node.push(n);
+    }
+    sort_topologically(&mut g)?;
+    let mut m = model.clone();
+    m.graph = Some(g);
+    let exposed: Vec<String> = pairs.iter().flat_map(|(_, a, b)| [a.clone(), b.clone()]).collect();
+    let mut rt = OrtRuntime::with_options(&expose_outputs(&m, &exposed), GraphOptimizationLevel::Level1, threads)?;
+
+    let mut sums: Vec<ErrorSums> = vec![ErrorSums::default(); pairs.len()];
+    let mut shift: HashMap<usize, (Vec<f64>, usize)> = HashMap::new();
+    for f in feeds {
+        let out: HashMap<String, Tensor> = rt.run(f)?.into_iter().collect();
+        for (k, (i, v, a)) in pairs.iter().enumerate() {
+            let (Some(fv), Some(av)) = (out.get(v).and_then(|t| t.as_f32()), out.get(a).and_then(|t| t.as_f32())) else { continue };
+            let output_q = (!plan.float_output.contains(i)).then(|| param(v)).flatten();
+            let fake = |x: f32| output_q.map_or(x as f64, |p| p.fake_quant(x as f64));
+            sums[k].add(fv.iter().map(|&x| x as f64), av.iter().map(|&x| fake(x)));
+            if src.node[*i].op_type == "Conv" {
+                let t = &out[v];
+                let c = t.shape.get(1).copied().unwrap_or(1).max(1);
+                let plane = fv.len() / c;
+                let e = shift.entry(*i).or_insert_with(|| (vec![0.0; c], 0));
+                for ch in 0..c {
+                    let d: f64 = (0..plane).map(|p| (av[ch * plane + p] - fv[ch * plane + p]) as f64).sum();
+                    e.0[ch] += d / plane.max(1) as f64;
+                }
+                e.1 += 1;
+            }
+        }
+    }
+    let layers = pairs
+        .iter()
+        .zip(&sums)
+        .map(|((i, v, _), s)| LayerError { node: src.node[*i].name.clone(), op: src.node[*i].op_type.clone(), value: v.clone(), alone: s.finish(), accumulated: None })
+        .collect();
+    let conv_shift = shift.into_iter().map(|(i, (s, n))| (i, s.into_iter().map(|x| x / n.max(1) as f64).collect())).collect();
+    let node_of_value = pairs.iter().map(|(i, v, _)| (v.clone(), *i)).collect();
+    Ok(AloneAnalysis { layers, conv_shift, node_of_value })
+}
+
+/// Per-tensor parameters of a constant operand, as emission gives it.
+fn constant_params(g: &Graph, name: &str, ty: ActivationType) -> Option<QParams> {
+    let t = to_tensor(g.initializers.get(name)?).ok()?;
+    let (lo, hi) = t.as_f32()?.iter().fold((0.0f64, 0.0f64), |(a, b), &x| (a.min(x as f64), b.max(x as f64)));
+    Some(QParams::activation(lo, hi, ty))
+}
+
+/// Error of every quantized value in `quantized` (named by `dequantized`) against `float`.
+pub fn accumulated(float: &ModelProto, quantized: &ModelProto, dequantized: &BTreeMap<String, String>, feeds: &Feeds, threads: usize) -> Result<HashMap<String, TensorError>> {
+    let (names, dq): (Vec<String>, Vec<String>) = dequantized.iter().map(|(a, b)| (a.clone(), b.clone())).unzip();
+    let mut f = OrtRuntime::with_options(&expose_outputs(float, &names), GraphOptimizationLevel::Level1, threads)?;
+    let mut q = OrtRuntime::with_options(&expose_outputs(quantized, &dq), GraphOptimizationLevel::Level1, threads)?;
+    let mut sums = vec![ErrorSums::default(); names.len()];
+    for feed in feeds {
+        let fo: HashMap<String, Tensor> = f.run(feed)?.into_iter().chain(feed.iter().cloned()).collect();
+        let qo: HashMap<String, Tensor> = q.run(feed)?.into_iter().collect();
+        for (k, (a, b)) in names.iter().zip(&dq).enumerate() {
+            if let (Some(x), Some(y)) = (fo.get(a).and_then(|t| t.as_f32()), qo.get(b).and_then(|t| t.as_f32())) {
+                sums[k].add(x.iter().map(|&v| v as f64), y.iter().map(|&v| v as f64));
+            }
+        }
+    }
+    Ok(names.into_iter().zip(sums.iter().map(|s| s.finish())).collect())
+}
+
+/// One output (or one channel group of the decoded detection output: boxes, objectness,
+/// classes) and its error.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct OutputError {
+    pub output: String,
+    pub group: Option<&'static str>,
+    pub error: TensorError,
+}
+
+/// Errors of `candidate`'s outputs against `reference`'s, split by channel group where the
+/// output is a decoded detection tensor, so that scores are judged apart from coordinates.
+pub fn output_errors(reference: &ModelProto, candidate: &ModelProto, feeds: &Feeds, threads: usize) -> Result<Vec<OutputError>> {
+    let g = reference.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+    let graph = Graph::build(g)?;
+    let inf = infer(&graph);
+    let outputs: Vec<String> = g.output.iter().map(|o| o.name.clone()).collect();
+    let head = head::detect(&graph, &inf, &outputs);
+    let mut r = OrtRuntime::with_options(reference, GraphOptimizationLevel::Level3, threads)?;
+    let mut c = OrtRuntime::with_options(candidate, GraphOptimizationLevel::Level3, threads)?;
+    let mut sums: BTreeMap<(usize, Option<&'static str>), ErrorSums> = BTreeMap::new();
+    for feed in feeds {
+        let (ro, co) = (r.run(feed)?, c.run(feed)?);
+        for (k, ((name, a), (_, b))) in ro.iter().zip(&co).enumerate() {
+            let (x, y) = (a.data.to_f64(), b.data.to_f64());
+            sums.entry((k, None)).or_default().add(x.iter().copied(), y.iter().copied());
+            if head.output.as_deref() == Some(name.as_str()) {
+                for (group, range) in channel_groups(head.kind, &a.shape) {
+                    let (x, y) = (crate::verify::select_channels(head.kind, a, range.clone()), crate::verify::select_channels(head.kind, b, range));
+                    sums.entry((k, Some(group))).or_default().add(x.into_iter(), y.into_iter());
+                }
+            }
+        }
+    }
+    Ok(sums.into_iter().map(|((k, group), s)| OutputError { output: outputs[k].clone(), group, error: s.finish() }).collect())
+}
+
+/// The worst rel L2 over outputs and groups (a group's error when the output has groups).
+pub fn worst_rel_l2(errors: &[OutputError]) -> f64 {
+    let grouped: std::collections::HashSet<&str> = errors.iter().filter(|e| e.group.is_some()).map(|e| e.output.as_str()).collect();
+    errors.iter().filter(|e| e.group.is_some() || !grouped.contains(e.output.as_str())).map(|e| e.error.rel_l2).fold(0.0, f64::max)
+}

@@ -1,0 +1,121 @@
+//! A one-pass histogram of an activation whose range is not known in advance.
+//!
+//! Bins are symmetric around zero over [-R, R]; when a value falls outside, R doubles and
+//! neighbouring bins merge pairwise, so calibration streams frames once instead of a min/max
+//! pass followed by a histogram pass (which would double the float inference at 640x480).
+//! Exact min, max, count and sum are kept beside the bins.
+
+/// Bins across [-R, R]. 2048 is TensorRT's entropy calibration resolution; a multiple of 4
+/// keeps the pairwise merge aligned with zero.
+pub const BINS: usize = 2048;
+
+#[derive(Clone, Debug)]
+pub struct Histogram {
+    /// Half-width of the binned range; 0 until a nonzero finite value arrives.
+    pub radius: f64,
+    pub counts: Vec<u64>,
+    pub min: f64,
+    pub max: f64,
+    pub count: u64,
+    pub sum: f64,
+    /// NaN or infinite values seen (not binned).
+    pub non_finite: u64,
+}
+
+impl Default for Histogram {
+    fn default() -> Self {
+        Histogram { radius: 0.0, counts: vec![0; BINS], min: f64::INFINITY, max: f64::NEG_INFINITY, count: 0, sum: 0.0, non_finite: 0 }
+    }
+}
+
+impl Histogram {
+    pub fn add(&mut self, values: &[f32]) {
+        let peak = values.iter().filter(|v| v.is_finite()).fold(0.0f64, |m, &v| m.max(v.abs() as f64));
+        if peak > self.radius {
+            self.grow_to(peak);
+        }
+        let width = self.bin_width();
+        for &v in values {
+            if !v.is_finite() {
+                self.non_finite += 1;
+                continue;
+            }
+            let v = v as f64;
+            self.min = self.min.min(v);
+            self.max = self.max.max(v);
+            self.count += 1;
+            self.sum += v;
+            if width > 0.0 {
+                let b = ((v + self.radius) / width) as usize;
+                self.counts[b.min(BINS - 1)] += 1;
+            } else {
+                // All zeros so far: they sit in the bin just above zero.
+                self.counts[BINS / 2] += 1;
+            }
+        }
+    }
+
+    pub fn bin_width(&self) -> f64 {
+        2.0 * self.radius / BINS as f64
+    }
+
+    /// Centre of bin `b`.
+    pub fn center(&self, b: usize) -> f64 {
+        -self.radius + (b as f64 + 0.5) * self.bin_width()
+    }
+
+    pub fn mean(&self) -> f64 {
+        if self.count == 0 { 0.0 } else { self.sum / self.count as f64 }
+    }
+
+    /// Whether any finite value was seen.
+    pub fn is_empty(&self) -> bool {
+        self.count == 0
+    }
+
+    fn grow_to(&mut self, peak: f64) {
+        if self.radius == 0.0 {
+            // First nonzero value: any zeros already counted stay in the bin above zero.
+            self.radius = peak;
+            return;
+        }
+        while self.radius < peak {
+            let mut merged = vec![0u64; BINS];
+            for (b, &c) in self.counts.iter().enumerate() {
+                merged[BINS / 4 + b / 2] += c;
+            }
+            self.counts = merged;
+            self.radius *= 2.0;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn growing_keeps_counts_and_order() {
+        let mut h = Histogram::default();
+        h.add(&[0.0, 0.5, -0.5, 1.0]);
+        h.add(&[7.5, -3.0]);
+        assert_eq!(h.counts.iter().sum::<u64>(), 6);
+        assert!(h.radius >= 7.5);
+        assert_eq!((h.min, h.max), (-3.0, 7.5));
+        // Every value lies in the bin whose span holds it.
+        for v in [0.0, 0.5, -0.5, 1.0, 7.5, -3.0] {
+            let b = (((v + h.radius) / h.bin_width()) as usize).min(BINS - 1);
+            assert!(h.counts[b] > 0, "value {v} bin {b}");
+        }
+    }
+
+    #[test]
+    fn constant_and_non_finite_values_are_safe() {
+        let mut h = Histogram::default();
+        h.add(&[0.0; 16]);
+        assert_eq!(h.radius, 0.0);
+        h.add(&[f32::NAN, f32::INFINITY]);
+        assert_eq!(h.non_finite, 2);
+        assert_eq!(h.count, 16);
+    }
+}

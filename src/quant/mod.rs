@@ -1,0 +1,10 @@
+//! Post-training INT8 quantization: ranges from calibration frames, QDQ emission, error
+//! attribution per layer, bias correction and mixed precision. The `quantize` pass drives it.
+
+pub mod attribution;
+pub mod collect;
+pub mod histogram;
+pub mod params;
+pub mod plan;
+pub mod qdq;
+pub mod range;

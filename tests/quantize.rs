@@ -1,0 +1,153 @@
+//! INT8 (QDQ) and FP16 compiles of the fixtures: ONNX Runtime fuses the INT8 graph into
+//! integer kernels, outputs stay close to float per channel group, degenerate calibration
+//! sets (all-zero frames, outliers) give finite scales and warnings, mixed precision keeps
+//! layers float until its budget holds (or says it could not).
+
+mod common;
+use common::*;
+use pdi_compile::runtime::{self, Engine};
+use std::path::Path;
+
+const V5: &str = "models/fixtures/pdinet_v5_input_op17_nofold.onnx";
+const V8: &str = "models/fixtures/pdinet_v8_input_op13_nofold.onnx";
+const PSF: &str = "calib/single_lwir_blur.npy";
+
+/// `recipe` (a shipped pipeline) with `from` replaced by `to`, written into `dir`.
+fn variant(dir: &Path, recipe: &str, from: &str, to: &str) -> String {
+    let text = std::fs::read_to_string(repo().join(recipe)).unwrap();
+    assert!(text.contains(from), "{recipe} has '{from}'");
+    let path = dir.join(format!("variant_{}.yaml", dir.read_dir().unwrap().count()));
+    std::fs::write(&path, text.replace(from, to)).unwrap();
+    path.to_str().unwrap().to_string()
+}
+
+fn compile(model: &str, recipe: &str, out: &Path, extra: &[&str]) -> serde_json::Value {
+    let mut args = vec!["compile", model, "--pipeline", recipe, "--psf", PSF, "-o", out.to_str().unwrap(), "--json"];
+    args.extend_from_slice(extra);
+    let r = cli(&args);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    report["passes"].as_array().unwrap().last().unwrap()["details"].clone()
+}
+
+fn run_candidate(path: &Path, engine: Engine) -> Vec<(String, pdi_compile::tensor::Tensor)> {
+    let m = load(path);
+    let inputs = inputs_for(&m, 3);
+    runtime::load(engine, &m, &inputs).unwrap().run(&inputs).unwrap()
+}
+
+fn scales_are_finite(path: &Path) {
+    let m = load(path);
+    let g = m.graph.unwrap();
+    let mut seen = 0;
+    for t in g.initializer.iter().filter(|t| t.name.ends_with("_scale")) {
+        let v = pdi_compile::onnx::tensor_proto::to_tensor(t).unwrap();
+        assert!(v.as_f32().unwrap().iter().all(|s| s.is_finite() && *s > 0.0), "scale {} {:?}", t.name, v.as_f32());
+        seen += 1;
+    }
+    assert!(seen > 10, "the model has its Q/DQ scales ({seen})");
+}
+
+#[test]
+fn int8_fixtures_fuse_into_integer_kernels_and_stay_close_per_channel_group() {
+    let dir = tempfile::tempdir().unwrap();
+    let recipe = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 16");
+    for fixture in [V5, V8] {
+        let out = dir.path().join(Path::new(fixture).file_stem().unwrap());
+        let q = compile(fixture, &recipe, &out, &[]);
+        let fused = q["ort_optimized_ops"]["QLinearConv"].as_u64().unwrap_or(0);
+        let convs = q["ort_optimized_ops"]["Conv"].as_u64().unwrap_or(0) + q["ort_optimized_ops"]["FusedConv"].as_u64().unwrap_or(0);
+        println!("{fixture}: QLinearConv {fused}, float Conv {convs}, worst output rel L2 {}, outputs {}", q["worst_output_rel_l2"], q["output_errors"]);
+        assert!(fused >= 10 && fused > 3 * convs, "ORT fuses the convolutions: {}", q["ort_optimized_ops"]);
+        let groups: Vec<&serde_json::Value> = q["output_errors"].as_array().unwrap().iter().filter(|e| !e["group"].is_null()).collect();
+        assert!(groups.iter().any(|e| e["group"] == "classes") && groups.iter().any(|e| e["group"] == "boxes"), "{}", q["output_errors"]);
+        for e in &groups {
+            let (rel, cos) = (e["error"]["rel_l2"].as_f64().unwrap(), e["error"]["cosine"].as_f64().unwrap());
+            assert!(rel < 0.1 && cos > 0.99, "{}: {e}", fixture);
+        }
+        let layers = q["layers"].as_array().unwrap();
+        assert!(!layers.is_empty() && layers.iter().all(|l| l["alone"]["rel_l2"].is_f64() && l["accumulated"]["rel_l2"].is_f64()));
+        let worst_first: Vec<f64> = layers.iter().map(|l| l["accumulated"]["rel_l2"].as_f64().unwrap()).collect();
+        assert!(worst_first.windows(2).all(|w| w[0] >= w[1]), "attribution is sorted worst first");
+        assert!(q["bias_corrected_convolutions"].as_u64().unwrap() > 0);
+        scales_are_finite(&out.join("model.onnx"));
+        for engine in [Engine::Ort, Engine::Tract] {
+            for (name, t) in run_candidate(&out.join("model.onnx"), engine) {
+                assert!(t.data.to_f64().iter().all(|v| v.is_finite()), "{engine:?} {name} finite");
+            }
+        }
+    }
+}
+
+#[test]
+fn degenerate_calibration_sets_give_finite_scales_and_warnings() {
+    let dir = tempfile::tempdir().unwrap();
+    let recipe = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 4, analysis_frames: 2, held_out_frames: 2");
+    let (w, h) = (256, 192);
+    let zeros = dir.path().join("zeros");
+    let outliers = dir.path().join("outliers");
+    std::fs::create_dir_all(&zeros).unwrap();
+    std::fs::create_dir_all(&outliers).unwrap();
+    let mut rng = Lcg(9);
+    for i in 0..6 {
+        pdi_compile::frames::write_gray16(&zeros.join(format!("{i}.png")), w, h, &vec![0.0; w * h]).unwrap();
+        // Dim noise with one saturated hot spot: minmax ranges blow up, clipping methods don't.
+        let mut v: Vec<f32> = (0..w * h).map(|_| 0.05 * rng.next_f32()).collect();
+        v[(h / 2) * w + w / 2] = 1.0;
+        pdi_compile::frames::write_gray16(&outliers.join(format!("{i}.png")), w, h, &v).unwrap();
+    }
+    for (set, method) in [(&zeros, "percentile"), (&zeros, "entropy"), (&outliers, "minmax"), (&outliers, "mse")] {
+        let recipe = variant(dir.path(), &recipe, "method: percentile", &format!("method: {method}"));
+        let out = dir.path().join(format!("{}_{method}", set.file_name().unwrap().to_str().unwrap()));
+        let q = compile(V5, &recipe, &out, &["--calib", set.to_str().unwrap()]);
+        scales_are_finite(&out.join("model.onnx"));
+        for (name, t) in run_candidate(&out.join("model.onnx"), Engine::Ort) {
+            assert!(t.data.to_f64().iter().all(|v| v.is_finite()), "{name} finite");
+        }
+        if set == &zeros {
+            let warnings = q["warnings"].to_string();
+            assert!(warnings.contains("constant zero"), "all-zero frames are named: {warnings}");
+        }
+    }
+}
+
+#[test]
+fn mixed_precision_keeps_the_most_sensitive_layers_float_until_the_budget_holds() {
+    let dir = tempfile::tempdir().unwrap();
+    let small = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 8, max_float_layers: 3");
+    let impossible = variant(dir.path(), &small, "error_budget: 0.05", "error_budget: 0.0");
+    let q = compile(V5, &impossible, &dir.path().join("impossible"), &[]);
+    let kept = q["mixed_precision"]["kept_float"].as_array().unwrap();
+    assert_eq!(kept.len(), 3, "{}", q["mixed_precision"]);
+    assert!(q["warnings"].to_string().contains("not met"));
+    let kept_nodes: Vec<&str> = kept.iter().map(|k| k["node"].as_str().unwrap()).collect();
+    let float_nodes = q["float_nodes"].to_string();
+    assert!(kept_nodes.iter().all(|n| float_nodes.contains(n)), "kept layers are float in the model");
+    let generous = variant(dir.path(), &small, "error_budget: 0.05", "error_budget: 10.0");
+    let q = compile(V5, &generous, &dir.path().join("generous"), &[]);
+    assert!(q["mixed_precision"]["kept_float"].as_array().unwrap().is_empty());
+}
+
+#[test]
+fn fp16_fixtures_run_on_both_runtimes_with_the_decode_in_f32() {
+    let dir = tempfile::tempdir().unwrap();
+    for fixture in [V5, V8] {
+        let f32_out = dir.path().join("f32");
+        compile(fixture, "passes/detect-f32.yaml", &f32_out, &[]);
+        let out = dir.path().join("fp16");
+        let r = compile(fixture, "passes/detect-fp16.yaml", &out, &[]);
+        assert!(r["nodes_f16"].as_u64().unwrap() > 20, "{r}");
+        assert!(r["nodes_f32"].to_string().contains("decode"), "{r}");
+        let reference = run_candidate(&f32_out.join("model.onnx"), Engine::Ort);
+        for engine in [Engine::Ort, Engine::Tract] {
+            let got = run_candidate(&out.join("model.onnx"), engine);
+            for ((name, a), (_, b)) in reference.iter().zip(&got) {
+                assert_eq!(a.shape, b.shape);
+                assert_eq!(b.dtype(), pdi_compile::tensor::DType::F32, "outputs stay float32");
+                let e = rel_l2(a, b);
+                println!("{fixture} fp16 {engine:?} {name}: rel L2 {e:.2e}");
+                assert!(e < 5e-3, "{fixture} {engine:?} {name}: {e}");
+            }
+        }
+    }
+}
