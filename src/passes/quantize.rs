@@ -15,8 +15,8 @@ use crate::ir::{infer, Graph};
 use crate::onnx::proto::ModelProto;
 use crate::pipeline::{Pass, PassContext};
 use crate::quant::attribution::{self, worst_rel_l2, LayerError};
-use crate::quant::collect::histograms;
-use crate::quant::params::{ActivationType, QParams};
+use crate::quant::collect::statistics;
+use crate::quant::params::{degenerate_range, quantize_weights, weight_rounding_shift, ActivationType, QParams};
 use crate::quant::plan::{plan, Plan};
 use crate::quant::qdq::{emit, EmitOptions};
 use crate::quant::range::{choose, Method};
@@ -39,6 +39,8 @@ pub struct Options {
     pub analysis_frames: usize,
     /// Further frames, never used to calibrate, on which the result is measured.
     pub held_out_frames: usize,
+    /// Subtract the per-channel output mean shift that weight rounding causes (from the
+    /// calibration frames' per-channel input means).
     pub bias_correction: bool,
     /// Largest rel L2 of any output channel group against float; layers are kept float,
     /// most sensitive first, until it holds. None: no mixed precision.
@@ -72,6 +74,10 @@ pub struct Quantize {
     pub options: Options,
 }
 
+/// A layer mixed precision tries stays float only if the worst output error drops below this
+/// fraction of what it was.
+const MIN_IMPROVEMENT: f64 = 0.97;
+
 /// Layers listed in the report's attribution table (worst first); the rest are counted.
 const REPORTED_LAYERS: usize = 40;
 
@@ -93,6 +99,7 @@ impl Pass for Quantize {
         let g = float.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
         let graph = Graph::build(g)?;
         let inf = infer(&graph);
+        let mut clock = Clock::default();
         let (mut feeds, source) = image_feeds(&graph, &inf, cx.calib.as_deref(), o.calib_frames.max(1) + o.held_out_frames, o.seed)?;
         let calib = o.calib_frames.max(1);
         // Held-out frames come after the calibration frames; a folder too small for both
@@ -100,63 +107,93 @@ impl Pass for Quantize {
         let (held_out, overlap) = if feeds.len() > calib { (feeds.split_off(calib), false) } else { (feeds.iter().rev().take(o.held_out_frames.max(1)).cloned().collect(), true) };
         let analysis: Vec<_> = feeds.iter().take(o.analysis_frames.max(1)).cloned().collect();
 
+        clock.lap("frames");
         let keep: HashSet<String> = o.keep_float.iter().cloned().collect();
         let base = plan(&graph, &keep);
         let values: Vec<String> = base.quantized_values(&graph).into_iter().collect();
-        let mut hists = histograms(&float, &values.iter().filter(|v| !is_input(&graph, v)).cloned().collect::<Vec<_>>(), &feeds, threads)?;
-        for v in values.iter().filter(|v| is_input(&graph, v)) {
-            let h = hists.entry(v.clone()).or_default();
-            for f in &feeds {
-                if let Some(t) = f.iter().find(|(n, _)| n == v).and_then(|(_, t)| t.as_f32()) {
-                    h.add(t);
-                }
-            }
-        }
+        // A sigmoid's output range follows from its input's (it is monotonic), so those large
+        // tensors need not be read back from the runtime.
+        let sigmoid_input = |v: &str| graph.producer_of(v).filter(|n| n.op_type == "Sigmoid").map(|n| n.input[0].clone());
+        let mut collected: Vec<String> = values.iter().map(|v| sigmoid_input(v).unwrap_or_else(|| v.clone())).collect();
+        collected.sort();
+        collected.dedup();
+        let conv_inputs: HashMap<String, usize> = base
+            .quantized
+            .iter()
+            .map(|&i| graph.node(i))
+            .filter(|n| n.op_type == "Conv")
+            .filter_map(|n| Some((n.input[0].clone(), inf.shape(&n.input[0])?.get(1).copied()?)))
+            .collect();
+        let conv_inputs = if o.bias_correction { conv_inputs } else { HashMap::new() };
+        let stats = statistics(&float, &collected, &conv_inputs, &feeds, threads)?;
         let mut warnings = Vec::new();
         let mut params: HashMap<String, QParams> = HashMap::new();
         for v in &values {
-            let h = &hists[v];
-            let (lo, hi) = choose(h, o.method, o.percentile, o.activations);
-            let p = QParams::activation(lo, hi, o.activations);
+            let (lo, hi, h) = match sigmoid_input(v) {
+                Some(input) => {
+                    let h = &stats.histograms[&input];
+                    let sigmoid = |x: f64| if x.is_finite() { 1.0 / (1.0 + (-x).exp()) } else { 0.0 };
+                    (0.0, if h.is_empty() { 0.0 } else { sigmoid(h.max) }, h)
+                }
+                None => {
+                    let h = &stats.histograms[v];
+                    let (lo, hi) = choose(h, o.method, o.percentile, o.activations);
+                    (lo, hi, h)
+                }
+            };
             if h.non_finite > 0 {
                 warnings.push(format!("'{v}' had {} NaN/infinite values on the calibration frames; they were ignored", h.non_finite));
             }
-            if p.is_degenerate() {
-                warnings.push(format!("'{v}' is constant zero on the calibration frames; it gets a fixed scale {:.6}", p.scale));
+            if degenerate_range(lo, hi) {
+                warnings.push(format!("'{v}' is constant zero on the calibration frames; it gets a fixed scale {:.6}", QParams::activation(lo, hi, o.activations).scale));
             }
-            params.insert(v.clone(), p);
+            params.insert(v.clone(), QParams::activation(lo, hi, o.activations));
         }
+        let shifts = if o.bias_correction { bias_shifts(&graph, &base, &stats.channel_means, o.weight_bits)? } else { HashMap::new() };
+        clock.lap("ranges");
 
-        let alone = attribution::alone(&float, &base, &params, o.activations, o.weight_bits, &analysis, threads)?;
-        let shifts = if o.bias_correction { alone.conv_shift.clone() } else { HashMap::new() };
         let emit_with = |p: &Plan| emit(&float, p, &EmitOptions { params: &params, activations: o.activations, weight_bits: o.weight_bits, bias_shift: &shifts });
         let (mut quantized, mut emitted) = emit_with(&base)?;
+        clock.lap("emit");
+        let alone = attribution::alone(&float, &base, &params, o.activations, o.weight_bits, &analysis, threads)?;
+        clock.lap("layer_analysis");
 
         // Mixed precision: the layers whose alone error is largest go float, one at a time,
         // until the outputs are within the budget.
         let mut kept_float: Vec<serde_json::Value> = Vec::new();
+        let mut rejected: Vec<serde_json::Value> = Vec::new();
         let mut current = base.clone();
         if let Some(budget) = o.error_budget {
             let mut ranked: Vec<&LayerError> = alone.layers.iter().collect();
             ranked.sort_by(|a, b| b.alone.rel_l2.total_cmp(&a.alone.rel_l2));
             let mut worst = worst_rel_l2(&attribution::output_errors(&float, &quantized, &analysis, threads)?);
             let mut names = keep.clone();
+            let mut tried = Vec::new();
             for layer in ranked.into_iter().take(o.max_float_layers) {
                 if worst <= budget {
                     break;
                 }
-                names.insert(layer.node.clone());
-                current = plan(&graph, &names);
-                (quantized, emitted) = emit_with(&current)?;
-                let before = worst;
-                worst = worst_rel_l2(&attribution::output_errors(&float, &quantized, &analysis, threads)?);
-                kept_float.push(serde_json::json!({"node": layer.node, "op": layer.op, "alone_rel_l2": layer.alone.rel_l2, "output_rel_l2_before": before, "output_rel_l2_after": worst}));
+                let mut with = names.clone();
+                with.insert(layer.node.clone());
+                let candidate_plan = plan(&graph, &with);
+                let (candidate, candidate_emitted) = emit_with(&candidate_plan)?;
+                let after = worst_rel_l2(&attribution::output_errors(&float, &candidate, &analysis, threads)?);
+                let step = serde_json::json!({"node": layer.node, "op": layer.op, "alone_rel_l2": layer.alone.rel_l2, "output_rel_l2_before": worst, "output_rel_l2_after": after});
+                // A float layer costs speed: keep it only where it clearly helps.
+                if after < worst * MIN_IMPROVEMENT {
+                    (names, current, quantized, emitted, worst) = (with, candidate_plan, candidate, candidate_emitted, after);
+                    kept_float.push(step);
+                } else {
+                    tried.push(step);
+                }
             }
+            rejected = tried;
             if worst > budget {
-                warnings.push(format!("error budget {budget} not met: worst output rel L2 {worst:.4} after keeping {} layers float (max_float_layers {})", kept_float.len(), o.max_float_layers));
+                warnings.push(format!("error budget {budget} not met: worst output rel L2 {worst:.4} with {} layers float after trying {} (max_float_layers {})", kept_float.len(), kept_float.len() + rejected.len(), o.max_float_layers));
             }
         }
 
+        clock.lap("mixed_precision");
         let accumulated = attribution::accumulated(&float, &quantized, &emitted.dequantized, &analysis, threads)?;
         let mut layers = alone.layers.clone();
         for l in &mut layers {
@@ -164,6 +201,7 @@ impl Pass for Quantize {
         }
         layers.retain(|l| current.quantized.contains(&alone.node_of_value[&l.value]));
         layers.sort_by(|a, b| b.accumulated.map_or(b.alone.rel_l2, |e| e.rel_l2).total_cmp(&a.accumulated.map_or(a.alone.rel_l2, |e| e.rel_l2)));
+        clock.lap("accumulated_errors");
         let outputs = attribution::output_errors(&float, &quantized, &held_out, threads)?;
         if emitted.biases_clamped > 0 {
             warnings.push(format!("{} int32 bias values were clamped (input x weight scale too small for the bias)", emitted.biases_clamped));
@@ -172,6 +210,7 @@ impl Pass for Quantize {
         let ort_ops = crate::runtime::ort_runtime::OrtRuntime::optimized_ops(&quantized)?;
         *model = quantized;
         super::dce::eliminate(super::graph_mut(model)?)?;
+        clock.lap("held_out_check");
         let float_nodes: Vec<serde_json::Value> = current.float.iter().map(|(&i, why)| serde_json::json!({"node": g.node[i].name, "op": g.node[i].op_type, "why": why})).collect();
         Ok(serde_json::json!({
             "method": o.method,
@@ -187,16 +226,49 @@ impl Pass for Quantize {
             "emitted": emitted,
             "warnings": warnings,
             "ort_optimized_ops": ort_ops,
-            "mixed_precision": { "error_budget": o.error_budget, "kept_float": kept_float },
+            "mixed_precision": { "error_budget": o.error_budget, "kept_float": kept_float, "tried_and_rejected": rejected },
             "float_nodes": float_nodes,
             "output_errors": outputs,
             "worst_output_rel_l2": worst_rel_l2(&outputs),
+            "seconds": clock.laps,
+            "calibrate_and_emit_seconds": clock.laps["frames"] + clock.laps["ranges"] + clock.laps["emit"],
             "layers_quantized": layers.len(),
             "layers": layers.iter().take(REPORTED_LAYERS).collect::<Vec<_>>(),
         }))
     }
 }
 
-fn is_input(g: &Graph, v: &str) -> bool {
-    g.inputs.iter().any(|i| i.name == v)
+/// Per quantized convolution, the output mean shift its weight rounding causes (subtracted
+/// from its bias at emission).
+fn bias_shifts(g: &Graph, p: &Plan, means: &HashMap<String, Vec<f64>>, bits: u32) -> Result<HashMap<usize, Vec<f64>>> {
+    let mut out = HashMap::new();
+    for &i in &p.quantized {
+        let n = g.node(i);
+        let Some(mean) = (n.op_type == "Conv").then(|| means.get(&n.input[0])).flatten() else { continue };
+        let w = crate::onnx::tensor_proto::to_tensor(g.initializers[n.input[1].as_str()])?;
+        let v = w.as_f32().expect("planned");
+        let q = quantize_weights(v, w.shape[0], bits);
+        let group = crate::onnx::attr::int(n, "group", 1).max(1) as usize;
+        out.insert(i, weight_rounding_shift(v, &w.shape, group, &q, mean));
+    }
+    Ok(out)
+}
+
+/// Seconds per phase, for the report (calibration time is a deployment concern).
+struct Clock {
+    last: std::time::Instant,
+    laps: std::collections::BTreeMap<&'static str, f64>,
+}
+
+impl Default for Clock {
+    fn default() -> Self {
+        Clock { last: std::time::Instant::now(), laps: Default::default() }
+    }
+}
+
+impl Clock {
+    fn lap(&mut self, phase: &'static str) {
+        self.laps.insert(phase, self.last.elapsed().as_secs_f64());
+        self.last = std::time::Instant::now();
+    }
 }

@@ -16,7 +16,7 @@ use crate::onnx::edit::{fresh_name, set_initializer, sort_topologically};
 use crate::onnx::proto::{AttributeProto, ModelProto, TypeValue};
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
 use crate::pipeline::{Pass, PassContext};
-use crate::quant::collect::histograms;
+use crate::quant::collect::statistics;
 use crate::quant::qdq::node;
 use crate::tensor::{DType, Tensor, TensorData};
 use anyhow::{anyhow, Result};
@@ -119,7 +119,7 @@ impl Pass for ToFp16 {
             // Calibrated ranges: values beyond the headroom keep their node in f32.
             let values: Vec<String> = region.iter().flat_map(|&i| graph.node(i).output.iter().filter(|v| !v.is_empty()).cloned()).collect();
             let (feeds, source) = image_feeds(&graph, &inf, cx.calib.as_deref(), o.calib_frames.max(1), o.seed)?;
-            let hists = histograms(model, &values, &feeds, std::thread::available_parallelism().map_or(1, |n| n.get()))?;
+            let hists = statistics(model, &values, &HashMap::new(), &feeds, std::thread::available_parallelism().map_or(1, |n| n.get()))?.histograms;
             range_source = Some(source);
             let limit = F16_MAX * o.headroom;
             let candidates: Vec<usize> = graph.order.iter().copied().filter(|i| region.contains(i)).collect();

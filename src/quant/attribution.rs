@@ -1,7 +1,6 @@
 //! Where quantization error comes from, like RKNN's accuracy_analysis: for every quantized
 //! value, its error against float both accumulated along the quantized graph and for its
-//! layer alone (float inputs quantized once, that layer's weights quantized); plus the
-//! per-channel mean shift of each convolution alone, which bias correction removes.
+//! layer alone (float inputs quantized once, that layer's weights quantized).
 //!
 //! "Alone" errors come from one run of a single model: the float graph plus, beside every
 //! quantized node, a clone reading fake-quantized copies of its float inputs.
@@ -38,8 +37,6 @@ pub struct LayerError {
 
 pub struct AloneAnalysis {
     pub layers: Vec<LayerError>,
-    /// Conv node index -> mean (quantized - float) per output channel.
-    pub conv_shift: HashMap<usize, Vec<f64>>,
     pub node_of_value: HashMap<String, usize>,
 }
 
@@ -90,7 +87,6 @@ pub fn alone(model: &ModelProto, plan: &Plan, params: &HashMap<String, QParams>,
     let mut rt = OrtRuntime::with_options(&expose_outputs(&m, &exposed), GraphOptimizationLevel::Level1, threads)?;
 
     let mut sums: Vec<ErrorSums> = vec![ErrorSums::default(); pairs.len()];
-    let mut shift: HashMap<usize, (Vec<f64>, usize)> = HashMap::new();
     for f in feeds {
         let out: HashMap<String, Tensor> = rt.run(f)?.into_iter().collect();
         for (k, (i, v, a)) in pairs.iter().enumerate() {
@@ -98,17 +94,6 @@ pub fn alone(model: &ModelProto, plan: &Plan, params: &HashMap<String, QParams>,
             let output_q = (!plan.float_output.contains(i)).then(|| param(v)).flatten();
             let fake = |x: f32| output_q.map_or(x as f64, |p| p.fake_quant(x as f64));
             sums[k].add(fv.iter().map(|&x| x as f64), av.iter().map(|&x| fake(x)));
-            if src.node[*i].op_type == "Conv" {
-                let t = &out[v];
-                let c = t.shape.get(1).copied().unwrap_or(1).max(1);
-                let plane = fv.len() / c;
-                let e = shift.entry(*i).or_insert_with(|| (vec![0.0; c], 0));
-                for ch in 0..c {
-                    let d: f64 = (0..plane).map(|p| (av[ch * plane + p] - fv[ch * plane + p]) as f64).sum();
-                    e.0[ch] += d / plane.max(1) as f64;
-                }
-                e.1 += 1;
-            }
         }
     }
     let layers = pairs
@@ -116,9 +101,8 @@ pub fn alone(model: &ModelProto, plan: &Plan, params: &HashMap<String, QParams>,
         .zip(&sums)
         .map(|((i, v, _), s)| LayerError { node: src.node[*i].name.clone(), op: src.node[*i].op_type.clone(), value: v.clone(), alone: s.finish(), accumulated: None })
         .collect();
-    let conv_shift = shift.into_iter().map(|(i, (s, n))| (i, s.into_iter().map(|x| x / n.max(1) as f64).collect())).collect();
     let node_of_value = pairs.iter().map(|(i, v, _)| (v.clone(), *i)).collect();
-    Ok(AloneAnalysis { layers, conv_shift, node_of_value })
+    Ok(AloneAnalysis { layers, node_of_value })
 }
 
 /// Per-tensor parameters of a constant operand, as emission gives it.

@@ -28,8 +28,37 @@ impl Default for Histogram {
     }
 }
 
+/// Values binned per call at most: min, max, sum and count always see every value (the
+/// extremes decide minmax ranges and carry a detector's strongest activations), the bins a
+/// strided sample, which keeps a 640x480 frame's activations cheap to calibrate on.
+pub const MAX_BINNED_PER_CALL: usize = 1 << 16;
+
 impl Histogram {
+    /// Adds every value to the statistics and a strided sample of them (plus the extremes)
+    /// to the bins.
     pub fn add(&mut self, values: &[f32]) {
+        if values.len() <= MAX_BINNED_PER_CALL {
+            return self.add_all(values);
+        }
+        let (mut lo, mut hi, mut sum, mut finite) = (f32::INFINITY, f32::NEG_INFINITY, 0.0f64, 0u64);
+        for &v in values {
+            if v.is_finite() {
+                lo = lo.min(v);
+                hi = hi.max(v);
+                sum += v as f64;
+                finite += 1;
+            }
+        }
+        let stride = values.len().div_ceil(MAX_BINNED_PER_CALL);
+        let sample: Vec<f32> = values.iter().step_by(stride).copied().chain([lo, hi].into_iter().filter(|v| v.is_finite())).collect();
+        let (count, sum_before, non_finite) = (self.count, self.sum, self.non_finite);
+        self.add_all(&sample);
+        self.count = count + finite;
+        self.sum = sum_before + sum;
+        self.non_finite = non_finite + (values.len() as u64 - finite);
+    }
+
+    fn add_all(&mut self, values: &[f32]) {
         let peak = values.iter().filter(|v| v.is_finite()).fold(0.0f64, |m, &v| m.max(v.abs() as f64));
         if peak > self.radius {
             self.grow_to(peak);
@@ -53,6 +82,11 @@ impl Histogram {
                 self.counts[BINS / 2] += 1;
             }
         }
+    }
+
+    /// Values in the bins (a sample of `count` for large tensors).
+    pub fn binned(&self) -> u64 {
+        self.counts.iter().sum()
     }
 
     pub fn bin_width(&self) -> f64 {
@@ -107,6 +141,18 @@ mod tests {
             let b = (((v + h.radius) / h.bin_width()) as usize).min(BINS - 1);
             assert!(h.counts[b] > 0, "value {v} bin {b}");
         }
+    }
+
+    #[test]
+    fn large_tensors_keep_exact_statistics_and_their_extremes() {
+        let mut v: Vec<f32> = (0..1_000_000).map(|i| (i % 1000) as f32 / 1000.0).collect();
+        v[123_457] = 50.0;
+        v[7] = f32::NAN;
+        let mut h = Histogram::default();
+        h.add(&v);
+        assert_eq!((h.count, h.non_finite, h.max), (999_999, 1, 50.0));
+        assert!(h.binned() < 100_000);
+        assert!(h.counts[BINS - 1] > 0, "the outlier is binned");
     }
 
     #[test]

@@ -25,6 +25,11 @@ pub const DEGENERATE_SCALE: f64 = 1.0 / 255.0;
 /// a scale near f32's smallest normals would overflow x / scale and the int32 bias.
 const MIN_RANGE: f64 = 1e-30;
 
+/// Whether [lo, hi] is too narrow (or not finite) to derive a scale from.
+pub fn degenerate_range(lo: f64, hi: f64) -> bool {
+    !(hi - lo).is_finite() || hi - lo < MIN_RANGE
+}
+
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct QParams {
     pub scale: f64,
@@ -38,16 +43,12 @@ impl QParams {
     pub fn activation(lo: f64, hi: f64, ty: ActivationType) -> QParams {
         let (qmin, qmax) = ty.bounds();
         let (lo, hi) = (lo.min(0.0), hi.max(0.0));
-        if !(hi - lo).is_finite() || hi - lo < MIN_RANGE {
+        if degenerate_range(lo, hi) {
             return QParams { scale: DEGENERATE_SCALE, zero_point: 0.clamp(qmin, qmax), qmin, qmax };
         }
         let scale = (hi - lo) / (qmax - qmin) as f64;
         let zero_point = (qmin as f64 - lo / scale).round().clamp(qmin as f64, qmax as f64) as i32;
         QParams { scale, zero_point, qmin, qmax }
-    }
-
-    pub fn is_degenerate(&self) -> bool {
-        self.scale == DEGENERATE_SCALE
     }
 
     pub fn quantize(&self, x: f64) -> i32 {
@@ -109,7 +110,8 @@ mod tests {
         assert_eq!(p.fake_quant(0.0), 0.0);
         assert!((p.fake_quant(5.0) - 5.0).abs() <= p.scale);
         let z = QParams::activation(0.0, 0.0, ActivationType::U8);
-        assert!(z.scale.is_finite() && z.scale > 0.0 && z.is_degenerate());
+        assert!(z.scale.is_finite() && z.scale > 0.0 && degenerate_range(0.0, 0.0));
+        assert!(!degenerate_range(0.0, 1.0));
         assert_eq!(z.fake_quant(0.0), 0.0);
     }
 
@@ -119,4 +121,26 @@ mod tests {
         assert_eq!(q.values, vec![127, -64, 0, 0, 127, 64]);
         assert_eq!(q.scales[1], 1.0, "an all-zero channel gets a finite scale");
     }
+}
+
+/// Mean output shift per output channel that weight rounding causes: sum over each filter of
+/// (W_q - W) * E[x] for its input channel (data-free bias correction, Nagel et al. 2019; the
+/// zero padding at the borders is ignored). `shape` is [O, I/group, kh, kw].
+pub fn weight_rounding_shift(w: &[f32], shape: &[usize], group: usize, q: &QuantizedWeights, input_means: &[f64]) -> Vec<f64> {
+    let (out, per_group_in) = (shape[0], shape.get(1).copied().unwrap_or(1));
+    let taps: usize = shape.iter().skip(2).product::<usize>().max(1);
+    let out_per_group = (out / group.max(1)).max(1);
+    (0..out)
+        .map(|o| {
+            let s = q.scales[o];
+            let first_input = (o / out_per_group) * per_group_in;
+            (0..per_group_in)
+                .map(|i| {
+                    let mean = input_means.get(first_input + i).copied().unwrap_or(0.0);
+                    let base = (o * per_group_in + i) * taps;
+                    (base..base + taps).map(|k| q.values[k] as f64 * s - w[k] as f64).sum::<f64>() * mean
+                })
+                .sum()
+        })
+        .collect()
 }

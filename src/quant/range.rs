@@ -49,7 +49,7 @@ pub fn choose(h: &Histogram, method: Method, percentile: f64, ty: ActivationType
 
 /// The value below which a fraction `q` of the counts lie (upper edge of that bin).
 fn quantile(h: &Histogram, q: f64) -> f64 {
-    let target = (q.clamp(0.0, 1.0) * h.count as f64).ceil() as u64;
+    let target = (q.clamp(0.0, 1.0) * h.binned() as f64).ceil() as u64;
     let mut seen = 0;
     for (b, &c) in h.counts.iter().enumerate() {
         seen += c;

@@ -58,6 +58,26 @@ impl OrtRuntime {
     }
 }
 
+impl OrtRuntime {
+    /// Runs once and shows the float32 outputs to `f` in place, all at once (no copy:
+    /// calibration reads hundreds of megabytes of activations per 640x480 frame).
+    pub fn visit_f32<R>(&mut self, inputs: &[(String, Tensor)], f: impl FnOnce(&[(&str, &[f32])]) -> R) -> Result<R> {
+        let mut values: Vec<(String, DynValue)> = Vec::with_capacity(inputs.len());
+        for (name, t) in inputs {
+            values.push((name.clone(), to_ort(t).with_context(|| format!("input {name}"))?));
+        }
+        let names = self.output_names();
+        let outputs = self.session.run(values).map_err(|e| anyhow!("ONNX Runtime failed: {e}"))?;
+        let mut seen: Vec<(&str, &[f32])> = Vec::new();
+        for n in &names {
+            if let Some(Ok((_, data))) = outputs.get(n).map(|v| v.try_extract_tensor::<f32>()) {
+                seen.push((n.as_str(), data));
+            }
+        }
+        Ok(f(&seen))
+    }
+}
+
 impl Runtime for OrtRuntime {
     fn name(&self) -> &'static str {
         "ort"
