@@ -42,7 +42,9 @@ pub fn statistics(model: &ModelProto, values: &[String], per_channel: &HashMap<S
                 if let Some(v) = by_name.get(name.as_str()) {
                     let plane = (v.len() / *c).max(1);
                     for (k, chunk) in v.chunks(plane).enumerate().take(*c) {
-                        acc[k] += chunk.iter().map(|&x| x as f64).sum::<f64>() / plane as f64;
+                        // f32 partial sums over short runs (vectorized), f64 across them.
+                        let total: f64 = chunk.chunks(256).map(|r| r.iter().sum::<f32>() as f64).sum();
+                        acc[k] += total / plane as f64;
                     }
                 }
             });
