@@ -49,6 +49,15 @@ pub struct Options {
     /// Nodes (or their output values) to leave in float.
     pub keep_float: Vec<String>,
     pub seed: u64,
+    /// `qdq` (ONNX Runtime fuses it) or `qlinear` (convolutions as QLinearConv, for tract).
+    pub format: Format,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Format {
+    Qdq,
+    Qlinear,
 }
 
 impl Default for Options {
@@ -66,6 +75,7 @@ impl Default for Options {
             max_float_layers: 8,
             keep_float: Vec::new(),
             seed: 0,
+            format: Format::Qdq,
         }
     }
 }
@@ -210,6 +220,7 @@ impl Pass for Quantize {
         let ort_ops = crate::runtime::ort_runtime::OrtRuntime::optimized_ops(&quantized)?;
         *model = quantized;
         super::dce::eliminate(super::graph_mut(model)?)?;
+        let qlinear_convs = if o.format == Format::Qlinear { Some(crate::quant::qlinear::to_qlinear_conv(super::graph_mut(model)?)?) } else { None };
         clock.lap("held_out_check");
         let float_nodes: Vec<serde_json::Value> = current.float.iter().map(|(&i, why)| serde_json::json!({"node": g.node[i].name, "op": g.node[i].op_type, "why": why})).collect();
         Ok(serde_json::json!({
@@ -217,6 +228,8 @@ impl Pass for Quantize {
             "percentile": (o.method == Method::Percentile).then_some(o.percentile),
             "activations": o.activations,
             "weight_bits": o.weight_bits,
+            "format": o.format,
+            "qlinear_convolutions": qlinear_convs,
             "calibration": source,
             "calibration_frames": feeds.len(),
             "analysis_frames": analysis.len(),

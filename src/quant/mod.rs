@@ -7,4 +7,5 @@ pub mod histogram;
 pub mod params;
 pub mod plan;
 pub mod qdq;
+pub mod qlinear;
 pub mod range;
