@@ -145,6 +145,9 @@ pub enum Command {
         seed: u64,
         #[arg(long)]
         json: bool,
+        /// Also write the gate's checks as JUnit XML (one testcase per check) to this file.
+        #[arg(long)]
+        junit: Option<PathBuf>,
     },
 }
 
@@ -245,10 +248,18 @@ pub fn run(cli: Cli) -> Result<u8> {
             crate::fsutil::write_atomic(&out.join("dataset.yaml"), yaml_serde::to_string(&summary)?.as_bytes())?;
             println!("dataset {}: {} frames, {boxes} objects; degraded PSNR {:.2} dB", out.display(), s.frames, s.psnr_db);
         }
-        Command::Verify { reference, candidate, data, random, psf, gate, runs, no_tract, seed, json } => {
+        Command::Verify { reference, candidate, data, random, psf, gate, runs, no_tract, seed, json, junit } => {
             let gate = gate.map(|g| crate::verify::gate::Gate::load(&g)).transpose()?;
+            if junit.is_some() && gate.is_none() {
+                anyhow::bail!("--junit reports the gate's checks; give --gate FILE too (e.g. passes/gate.yaml)");
+            }
+            let started = std::time::Instant::now();
+            let suite = candidate.display().to_string();
             let req = crate::verify::VerifyRequest { reference, candidate, data, random, psf, gate, latency_runs: runs, tract: !no_tract, seed };
             let report = crate::verify::verify(&req)?;
+            if let Some(path) = &junit {
+                crate::fsutil::write_atomic(path, crate::verify::junit::render(&suite, &report.checks, started.elapsed().as_secs_f64()).as_bytes())?;
+            }
             if json {
                 println!("{}", serde_json::to_string_pretty(&report)?);
             } else {

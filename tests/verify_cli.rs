@@ -61,8 +61,12 @@ fn a_perturbed_candidate_fails_with_exit_1() {
     *w = from_tensor(&last_conv, &Tensor::f32(t.shape.clone(), v));
     let bad = dir.path().join("perturbed.onnx");
     pdi_compile::onnx::save(&m, &bad).unwrap();
-    let r = verify(&reference, &bad, &["--no-tract"]);
+    let junit = dir.path().join("gate-junit.xml");
+    let r = verify(&reference, &bad, &["--no-tract", "--junit", junit.to_str().unwrap()]);
     assert_eq!(r.code, 1, "{}\n{}", r.stdout, r.stderr);
+    // The JUnit report names the failed checks for CI dashboards.
+    let xml = std::fs::read_to_string(&junit).unwrap();
+    assert!(xml.contains("<failure message=") && xml.contains("rel L2"), "{xml}");
     let j: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
     let failed: Vec<&str> = j["checks"].as_array().unwrap().iter().filter(|c| c["passed"] == false).map(|c| c["name"].as_str().unwrap()).collect();
     assert!(failed.iter().any(|n| n.contains("rel L2")), "{failed:?}");

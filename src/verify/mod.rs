@@ -7,6 +7,7 @@
 //! measured interleaved. A gate turns the report into pass/fail.
 
 pub mod gate;
+pub mod junit;
 pub mod latency;
 
 use crate::analysis::head::{Head, HeadKind};
