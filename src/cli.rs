@@ -44,6 +44,10 @@ pub enum Command {
         /// Store weights in DIR/model.onnx.data instead of one self-contained file.
         #[arg(long)]
         external_data: bool,
+        /// Deployment target: `tract` also checks the model on tract with fixed shapes, writes
+        /// an NNEF archive when it loads faster, and DIR/tract.yaml.
+        #[arg(long, value_enum, default_value_t)]
+        target: crate::targets::Target,
         /// Print the report as JSON instead of a summary.
         #[arg(long)]
         json: bool,
@@ -200,8 +204,8 @@ pub fn run(cli: Cli) -> Result<u8> {
                 print!("{}", report.render());
             }
         }
-        Command::Compile { model, pipeline, out, psf, keep_outputs, calib, external_data, json } => {
-            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib, keep_outputs } };
+        Command::Compile { model, pipeline, out, psf, keep_outputs, calib, external_data, target, json } => {
+            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib, keep_outputs }, target };
             let r = compile(&req)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);

@@ -2,7 +2,9 @@
 //!
 //! DIR/model.onnx      the compiled model (one self-contained file)
 //! DIR/report.json     per-pass reports and before/after counts
-//! DIR/manifest.yaml   input hash, pipeline, tool version: what made this folder
+//! DIR/manifest.yaml   input hash, pipeline, tool version, target: what made this folder
+//! DIR/tract.yaml      (--target tract) tract's load/run times and agreement with ORT;
+//!                     DIR/model.nnef.tar beside it when that loads faster
 //! Every file is written to a temp name and renamed, so a failed compile leaves no half file.
 
 use crate::fsutil::{ensure_dir, write_atomic};
@@ -25,6 +27,7 @@ pub struct CompileRequest {
     /// Weights go to `model.onnx.data` beside the model (needed past protobuf's 2 GiB).
     pub external_data: bool,
     pub context: PassContext,
+    pub target: crate::targets::Target,
 }
 
 #[derive(Serialize)]
@@ -40,6 +43,10 @@ pub struct CompileReport {
     pub warnings: Vec<String>,
     pub millis: f64,
     pub output: String,
+    pub target: crate::targets::Target,
+    /// What the target check measured (`--target tract`: tract.yaml's contents).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub target_check: Option<serde_json::Value>,
 }
 
 pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
@@ -58,6 +65,11 @@ pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
     let after = passes.last().map_or(before, |p| p.after);
 
     ensure_dir(&req.out_dir)?;
+    // The target check runs first: a model the target cannot take leaves no model.onnx behind.
+    let target_check = match req.target {
+        crate::targets::Target::Onnx => None,
+        crate::targets::Target::Tract => Some(serde_json::to_value(crate::targets::tract::write(&req.out_dir, &model)?)?),
+    };
     let out_model = req.out_dir.join("model.onnx");
     if req.external_data {
         onnx::io::save_with_external_data(&model, &out_model, EXTERNAL_THRESHOLD)?;
@@ -76,6 +88,8 @@ pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
         warnings: loaded.warnings,
         millis: t.elapsed().as_secs_f64() * 1e3,
         output: out_model.display().to_string(),
+        target: req.target,
+        target_check,
     };
     write_atomic(&req.out_dir.join("report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
     write_atomic(&req.out_dir.join("manifest.yaml"), manifest(&report, &out_model)?.as_bytes())?;
@@ -93,6 +107,9 @@ fn manifest(r: &CompileReport, model: &Path) -> Result<String> {
         model_sha256: String,
         pipeline: &'a Recipe,
         passes: &'a [PassReport],
+        target: crate::targets::Target,
+        #[serde(skip_serializing_if = "Option::is_none")]
+        target_check: Option<&'a serde_json::Value>,
     }
     let m = Manifest {
         tool: "pdi-compile",
@@ -103,6 +120,8 @@ fn manifest(r: &CompileReport, model: &Path) -> Result<String> {
         model_sha256: hex(&Sha256::digest(std::fs::read(model)?)),
         pipeline: &r.pipeline,
         passes: &r.passes,
+        target: r.target,
+        target_check: r.target_check.as_ref(),
     };
     Ok(yaml_serde::to_string(&m)?)
 }

@@ -22,5 +22,6 @@ pub mod pipeline;
 pub mod quant;
 pub mod prune;
 pub mod runtime;
+pub mod targets;
 pub mod tensor;
 pub mod verify;

@@ -15,7 +15,7 @@ use crate::ir::{infer, Graph};
 use crate::onnx::proto::ModelProto;
 use crate::pipeline::{Pass, PassContext};
 use crate::quant::attribution::{self, worst_rel_l2, LayerError};
-use crate::quant::collect::statistics;
+use crate::quant::collect::{statistics, Statistics};
 use crate::quant::params::{degenerate_range, quantize_weights, weight_rounding_shift, ActivationType, QParams};
 use crate::quant::plan::{plan, Plan};
 use crate::quant::qdq::{emit, EmitOptions};
@@ -123,8 +123,7 @@ impl Pass for Quantize {
         let values: Vec<String> = base.quantized_values(&graph).into_iter().collect();
         // A sigmoid's output range follows from its input's (it is monotonic), so those large
         // tensors need not be read back from the runtime.
-        let sigmoid_input = |v: &str| graph.producer_of(v).filter(|n| n.op_type == "Sigmoid").map(|n| n.input[0].clone());
-        let mut collected: Vec<String> = values.iter().map(|v| sigmoid_input(v).unwrap_or_else(|| v.clone())).collect();
+        let mut collected: Vec<String> = values.iter().map(|v| sigmoid_input(&graph, v).unwrap_or_else(|| v.clone())).collect();
         collected.sort();
         collected.dedup();
         let conv_inputs: HashMap<String, usize> = base
@@ -136,73 +135,25 @@ impl Pass for Quantize {
             .collect();
         let conv_inputs = if o.bias_correction { conv_inputs } else { HashMap::new() };
         let stats = statistics(&float, &collected, &conv_inputs, &feeds, threads)?;
-        let mut warnings = Vec::new();
-        let mut params: HashMap<String, QParams> = HashMap::new();
-        for v in &values {
-            let (lo, hi, h) = match sigmoid_input(v) {
-                Some(input) => {
-                    let h = &stats.histograms[&input];
-                    let sigmoid = |x: f64| if x.is_finite() { 1.0 / (1.0 + (-x).exp()) } else { 0.0 };
-                    (0.0, if h.is_empty() { 0.0 } else { sigmoid(h.max) }, h)
-                }
-                None => {
-                    let h = &stats.histograms[v];
-                    let (lo, hi) = choose(h, o.method, o.percentile, o.activations);
-                    (lo, hi, h)
-                }
-            };
-            if h.non_finite > 0 {
-                warnings.push(format!("'{v}' had {} NaN/infinite values on the calibration frames; they were ignored", h.non_finite));
-            }
-            if degenerate_range(lo, hi) {
-                warnings.push(format!("'{v}' is constant zero on the calibration frames; it gets a fixed scale {:.6}", QParams::activation(lo, hi, o.activations).scale));
-            }
-            params.insert(v.clone(), QParams::activation(lo, hi, o.activations));
-        }
+        let (params, mut warnings) = activation_params(&graph, &values, &stats, o);
         let shifts = if o.bias_correction { bias_shifts(&graph, &base, &stats.channel_means, o.weight_bits)? } else { HashMap::new() };
         clock.lap("ranges");
 
         let emit_with = |p: &Plan| emit(&float, p, &EmitOptions { params: &params, activations: o.activations, weight_bits: o.weight_bits, bias_shift: &shifts });
-        let (mut quantized, mut emitted) = emit_with(&base)?;
+        let (quantized, emitted) = emit_with(&base)?;
         clock.lap("emit");
         let alone = attribution::alone(&float, &base, &params, o.activations, o.weight_bits, &analysis, threads)?;
         clock.lap("layer_analysis");
 
-        // Mixed precision: the layers whose alone error is largest go float, one at a time,
-        // until the outputs are within the budget.
-        let mut kept_float: Vec<serde_json::Value> = Vec::new();
-        let mut rejected: Vec<serde_json::Value> = Vec::new();
-        let mut current = base.clone();
-        if let Some(budget) = o.error_budget {
-            let mut ranked: Vec<&LayerError> = alone.layers.iter().collect();
-            ranked.sort_by(|a, b| b.alone.rel_l2.total_cmp(&a.alone.rel_l2));
-            let mut worst = worst_rel_l2(&attribution::output_errors(&float, &quantized, &analysis, threads)?);
-            let mut names = keep.clone();
-            let mut tried = Vec::new();
-            for layer in ranked.into_iter().take(o.max_float_layers) {
-                if worst <= budget {
-                    break;
-                }
-                let mut with = names.clone();
-                with.insert(layer.node.clone());
-                let candidate_plan = plan(&graph, &with);
-                let (candidate, candidate_emitted) = emit_with(&candidate_plan)?;
-                let after = worst_rel_l2(&attribution::output_errors(&float, &candidate, &analysis, threads)?);
-                let step = serde_json::json!({"node": layer.node, "op": layer.op, "alone_rel_l2": layer.alone.rel_l2, "output_rel_l2_before": worst, "output_rel_l2_after": after});
-                // A float layer costs speed: keep it only where it clearly helps.
-                if after < worst * MIN_IMPROVEMENT {
-                    (names, current, quantized, emitted, worst) = (with, candidate_plan, candidate, candidate_emitted, after);
-                    kept_float.push(step);
-                } else {
-                    tried.push(step);
-                }
-            }
-            rejected = tried;
-            if worst > budget {
-                warnings.push(format!("error budget {budget} not met: worst output rel L2 {worst:.4} with {} layers float after trying {} (max_float_layers {})", kept_float.len(), kept_float.len() + rejected.len(), o.max_float_layers));
-            }
-        }
-
+        let mixed = match o.error_budget {
+            Some(budget) => mixed_precision(&MixedPrecision { float: &float, graph: &graph, keep: &keep, layers: &alone.layers, frames: &analysis, threads, budget, max_layers: o.max_float_layers }, &emit_with)?,
+            None => Mixed::default(),
+        };
+        warnings.extend(mixed.warning.clone());
+        let (current, (quantized, emitted)) = match mixed.chosen {
+            Some(chosen) => chosen,
+            None => (base.clone(), (quantized, emitted)),
+        };
         clock.lap("mixed_precision");
         let accumulated = attribution::accumulated(&float, &quantized, &emitted.dequantized, &analysis, threads)?;
         let mut layers = alone.layers.clone();
@@ -239,7 +190,7 @@ impl Pass for Quantize {
             "emitted": emitted,
             "warnings": warnings,
             "ort_optimized_ops": ort_ops,
-            "mixed_precision": { "error_budget": o.error_budget, "kept_float": kept_float, "tried_and_rejected": rejected },
+            "mixed_precision": { "error_budget": o.error_budget, "kept_float": mixed.kept, "tried_and_rejected": mixed.rejected },
             "float_nodes": float_nodes,
             "output_errors": outputs,
             "worst_output_rel_l2": worst_rel_l2(&outputs),
@@ -249,6 +200,94 @@ impl Pass for Quantize {
             "layers": layers.iter().take(REPORTED_LAYERS).collect::<Vec<_>>(),
         }))
     }
+}
+
+/// Activation parameters of every quantized value from its statistics, and warnings about
+/// degenerate or non-finite data.
+fn activation_params(graph: &Graph, values: &[String], stats: &Statistics, o: &Options) -> (HashMap<String, QParams>, Vec<String>) {
+    let mut warnings = Vec::new();
+    let mut params = HashMap::new();
+    for v in values {
+        let (lo, hi, h) = match sigmoid_input(graph, v) {
+            Some(input) => {
+                let h = &stats.histograms[&input];
+                let sigmoid = |x: f64| if x.is_finite() { 1.0 / (1.0 + (-x).exp()) } else { 0.0 };
+                (0.0, if h.is_empty() { 0.0 } else { sigmoid(h.max) }, h)
+            }
+            None => {
+                let h = &stats.histograms[v];
+                let (lo, hi) = choose(h, o.method, o.percentile, o.activations);
+                (lo, hi, h)
+            }
+        };
+        if h.non_finite > 0 {
+            warnings.push(format!("'{v}' had {} NaN/infinite values on the calibration frames; they were ignored", h.non_finite));
+        }
+        if degenerate_range(lo, hi) {
+            warnings.push(format!("'{v}' is constant zero on the calibration frames; it gets a fixed scale {:.6}", QParams::activation(lo, hi, o.activations).scale));
+        }
+        params.insert(v.clone(), QParams::activation(lo, hi, o.activations));
+    }
+    (params, warnings)
+}
+
+/// The input of the Sigmoid producing `v`, if one does.
+fn sigmoid_input(graph: &Graph, v: &str) -> Option<String> {
+    graph.producer_of(v).filter(|n| n.op_type == "Sigmoid").map(|n| n.input[0].clone())
+}
+
+struct MixedPrecision<'a> {
+    float: &'a ModelProto,
+    graph: &'a Graph<'a>,
+    keep: &'a HashSet<String>,
+    layers: &'a [LayerError],
+    frames: &'a [Vec<(String, crate::tensor::Tensor)>],
+    threads: usize,
+    budget: f64,
+    max_layers: usize,
+}
+
+#[derive(Default)]
+struct Mixed {
+    /// The plan and model with the kept layers float (None: nothing kept).
+    chosen: Option<(Plan, (ModelProto, crate::quant::qdq::Emitted))>,
+    kept: Vec<serde_json::Value>,
+    rejected: Vec<serde_json::Value>,
+    warning: Option<String>,
+}
+
+/// Mixed precision: layers go float one at a time, largest alone error first, until the
+/// worst output group is within the budget; a layer stays float only if it clearly helps.
+fn mixed_precision(m: &MixedPrecision, emit_with: &dyn Fn(&Plan) -> Result<(ModelProto, crate::quant::qdq::Emitted)>) -> Result<Mixed> {
+    let mut ranked: Vec<&LayerError> = m.layers.iter().collect();
+    ranked.sort_by(|a, b| b.alone.rel_l2.total_cmp(&a.alone.rel_l2));
+    let base = plan(m.graph, m.keep);
+    let mut worst = worst_rel_l2(&attribution::output_errors(m.float, &emit_with(&base)?.0, m.frames, m.threads)?);
+    let mut names = m.keep.clone();
+    let mut out = Mixed::default();
+    for layer in ranked.into_iter().take(m.max_layers) {
+        if worst <= m.budget {
+            break;
+        }
+        let mut with = names.clone();
+        with.insert(layer.node.clone());
+        let candidate_plan = plan(m.graph, &with);
+        let candidate = emit_with(&candidate_plan)?;
+        let after = worst_rel_l2(&attribution::output_errors(m.float, &candidate.0, m.frames, m.threads)?);
+        let step = serde_json::json!({"node": layer.node, "op": layer.op, "alone_rel_l2": layer.alone.rel_l2, "output_rel_l2_before": worst, "output_rel_l2_after": after});
+        // A float layer costs speed: keep it only where it clearly helps.
+        if after < worst * MIN_IMPROVEMENT {
+            (names, worst) = (with, after);
+            out.chosen = Some((candidate_plan, candidate));
+            out.kept.push(step);
+        } else {
+            out.rejected.push(step);
+        }
+    }
+    if worst > m.budget {
+        out.warning = Some(format!("error budget {} not met: worst output rel L2 {worst:.4} with {} layers float after trying {} (max_float_layers {})", m.budget, out.kept.len(), out.kept.len() + out.rejected.len(), m.max_layers));
+    }
+    Ok(out)
 }
 
 /// Per quantized convolution, the output mean shift its weight rounding causes (subtracted

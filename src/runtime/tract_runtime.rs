@@ -7,7 +7,7 @@ use anyhow::{anyhow, bail, Result};
 use prost::Message;
 use std::sync::Arc;
 use tract_onnx::prelude::{
-    tvec, Datum, DatumType, Framework, InferenceFact, InferenceModelExt, IntoRunnable, IntoTValue, Tensor as TractTensor, TypedRunnableModel,
+    tvec, Datum, DatumType, Framework, InferenceFact, InferenceModelExt, IntoRunnable, IntoTValue, Tensor as TractTensor, TypedModel, TypedRunnableModel,
 };
 
 pub struct TractRuntime {
@@ -19,26 +19,33 @@ pub struct TractRuntime {
 impl TractRuntime {
     /// `inputs` gives the concrete type and shape of every graph input (tract optimizes for them).
     pub fn new(model: &ModelProto, inputs: &[(String, Tensor)]) -> Result<TractRuntime> {
-        let graph = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
-        let inits: std::collections::HashSet<&str> = graph.initializer.iter().map(|t| t.name.as_str()).collect();
-        let input_names: Vec<String> =
-            graph.input.iter().map(|v| v.name.clone()).filter(|n| !inits.contains(n.as_str())).collect();
-        let output_names: Vec<String> = graph.output.iter().map(|v| v.name.clone()).collect();
-        let bytes = model.encode_to_vec();
-        let mut inference = tract_onnx::onnx()
-            .model_for_read(&mut &bytes[..])
-            .map_err(|e| anyhow!("tract cannot load the model: {e:#}"))?;
-        for (i, name) in input_names.iter().enumerate() {
-            let t = lookup(inputs, name)?;
-            let fact = InferenceFact::dt_shape(datum_type(t)?, t.shape.clone());
-            inference.set_input_fact(i, fact).map_err(|e| anyhow!("tract: input {name}: {e:#}"))?;
-        }
-        let plan = inference
-            .into_optimized()
-            .and_then(|m| m.into_runnable())
-            .map_err(|e| anyhow!("tract cannot optimize the model: {e:#}"))?;
+        let (typed, input_names, output_names) = typed_model(model, inputs)?;
+        Self::from_typed(typed, input_names, output_names)
+    }
+
+    /// A runtime for a model tract already holds (an NNEF archive, say).
+    pub fn from_typed(typed: TypedModel, input_names: Vec<String>, output_names: Vec<String>) -> Result<TractRuntime> {
+        let plan = typed.into_optimized().and_then(|m| m.into_runnable()).map_err(|e| anyhow!("tract cannot optimize the model: {e:#}"))?;
         Ok(TractRuntime { plan, input_names, output_names })
     }
+}
+
+/// The decluttered typed model of `model` with its inputs fixed to the shapes of `inputs`,
+/// and its input and output names.
+pub fn typed_model(model: &ModelProto, inputs: &[(String, Tensor)]) -> Result<(TypedModel, Vec<String>, Vec<String>)> {
+    let graph = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+    let inits: std::collections::HashSet<&str> = graph.initializer.iter().map(|t| t.name.as_str()).collect();
+    let input_names: Vec<String> = graph.input.iter().map(|v| v.name.clone()).filter(|n| !inits.contains(n.as_str())).collect();
+    let output_names: Vec<String> = graph.output.iter().map(|v| v.name.clone()).collect();
+    let bytes = model.encode_to_vec();
+    let mut inference = tract_onnx::onnx().model_for_read(&mut &bytes[..]).map_err(|e| anyhow!("tract cannot load the model: {e:#}"))?;
+    for (i, name) in input_names.iter().enumerate() {
+        let t = lookup(inputs, name)?;
+        let fact = InferenceFact::dt_shape(datum_type(t)?, t.shape.clone());
+        inference.set_input_fact(i, fact).map_err(|e| anyhow!("tract: input {name}: {e:#}"))?;
+    }
+    let typed = inference.into_typed().and_then(|m| m.into_decluttered()).map_err(|e| anyhow!("tract cannot type the model: {e:#}"))?;
+    Ok((typed, input_names, output_names))
 }
 
 impl Runtime for TractRuntime {

@@ -1,0 +1,16 @@
+//! Deployment targets: what `compile --target` writes beside the model so that the folder
+//! is what ships.
+
+pub mod tract;
+
+/// Where the compiled model goes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Target {
+    /// DIR/model.onnx for any ONNX runtime.
+    #[default]
+    Onnx,
+    /// DIR/model.onnx checked on tract with fixed shapes, an NNEF archive where it loads
+    /// faster, and DIR/tract.yaml with the measurements.
+    Tract,
+}

@@ -1,0 +1,138 @@
+//! `--target tract`: the compiled model, proven to load and run on tract with fixed shapes.
+//!
+//! Writes DIR/tract.yaml: the input shape tract was fixed to, load and run times (ONNX and
+//! NNEF), tract's agreement with ONNX Runtime on a simulated camera frame, and which file to
+//! load. DIR/model.nnef.tar is kept only when it loads faster than the ONNX file (measured:
+//! it skips ONNX parsing, type inference and decluttering).
+
+use crate::calib_frames::calibration_frames;
+use crate::fsutil::write_atomic;
+use crate::metrics::tensor_error::compare;
+use crate::onnx::proto::ModelProto;
+use crate::runtime::ort_runtime::OrtRuntime;
+use crate::runtime::tract_runtime::{typed_model, TractRuntime};
+use crate::runtime::Runtime;
+use crate::tensor::Tensor;
+use anyhow::{anyhow, bail, Result};
+use std::path::Path;
+use std::time::Instant;
+use tract_onnx::prelude::Framework;
+use tract_onnx::WithOnnx;
+
+/// Timed runs per loaded model (the median is reported).
+const RUNS: usize = 5;
+
+#[derive(serde::Serialize)]
+pub struct TractArtifact {
+    pub load: &'static str,
+    pub input: String,
+    pub shape: Vec<usize>,
+    pub onnx_load_ms: f64,
+    pub onnx_run_ms: f64,
+    pub nnef_load_ms: Option<f64>,
+    pub nnef_run_ms: Option<f64>,
+    pub nnef: String,
+    /// Worst output rel L2 of tract against ONNX Runtime on the same frame.
+    pub rel_l2_vs_ort: f64,
+}
+
+pub fn write(dir: &Path, model: &ModelProto) -> Result<TractArtifact> {
+    let feeds = fixed_inputs(model)?;
+    let (name, frame) = feeds[0].clone();
+
+    let t = Instant::now();
+    let mut from_onnx = TractRuntime::new(model, &feeds)?;
+    let onnx_load_ms = t.elapsed().as_secs_f64() * 1e3;
+    let (tract_out, onnx_run_ms) = timed_runs(&mut from_onnx, &feeds)?;
+    let ort_out = OrtRuntime::new(model)?.run(&feeds)?;
+    let rel_l2_vs_ort = tract_out.iter().zip(&ort_out).map(|((_, a), (_, b))| compare(&b.data.to_f64(), &a.data.to_f64()).rel_l2).fold(0.0, f64::max);
+
+    let tar = dir.join("model.nnef.tar");
+    let (mut nnef_load_ms, mut nnef_run_ms) = (None, None);
+    let nnef = match write_nnef(model, &feeds, &tar) {
+        Err(e) => format!("not written: {e:#}"),
+        Ok(()) => {
+            let outputs: Vec<String> = model.graph.iter().flat_map(|g| &g.output).map(|o| o.name.clone()).collect();
+            let t = Instant::now();
+            let typed = nnef().model_for_path(&tar).map_err(|e| anyhow!("tract cannot read its NNEF archive: {e:#}"))?;
+            let mut from_nnef = TractRuntime::from_typed(typed, vec![name.clone()], outputs)?;
+            let load = t.elapsed().as_secs_f64() * 1e3;
+            let (nnef_out, run) = timed_runs(&mut from_nnef, &feeds)?;
+            let drift = tract_out.iter().zip(&nnef_out).map(|((_, a), (_, b))| compare(&a.data.to_f64(), &b.data.to_f64()).rel_l2).fold(0.0, f64::max);
+            (nnef_load_ms, nnef_run_ms) = (Some(load), Some(run));
+            if drift > 1e-6 {
+                let _ = std::fs::remove_file(&tar);
+                format!("removed: its outputs differ from the ONNX file's on tract (rel L2 {drift:.2e})")
+            } else if load < onnx_load_ms {
+                format!("kept: loads in {load:.0} ms against {onnx_load_ms:.0} ms from ONNX")
+            } else {
+                let _ = std::fs::remove_file(&tar);
+                format!("removed: loads in {load:.0} ms, no faster than {onnx_load_ms:.0} ms from ONNX")
+            }
+        }
+    };
+    let artifact = TractArtifact {
+        load: if tar.exists() { "model.nnef.tar" } else { "model.onnx" },
+        input: name,
+        shape: frame.shape.clone(),
+        onnx_load_ms,
+        onnx_run_ms,
+        nnef_load_ms,
+        nnef_run_ms,
+        nnef,
+        rel_l2_vs_ort,
+    };
+    write_atomic(&dir.join("tract.yaml"), yaml_serde::to_string(&artifact)?.as_bytes())?;
+    Ok(artifact)
+}
+
+/// One simulated camera frame for the model's single image input, whose shape must be fixed.
+fn fixed_inputs(model: &ModelProto) -> Result<Vec<(String, Tensor)>> {
+    let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+    let inits: std::collections::HashSet<&str> = g.initializer.iter().map(|t| t.name.as_str()).collect();
+    let inputs: Vec<_> = g.input.iter().filter(|v| !inits.contains(v.name.as_str())).collect();
+    let [input] = inputs[..] else { bail!("the tract target needs one image input; this model has {} (bind the blur map with bind-psf and --psf)", inputs.len()) };
+    let shape = crate::ir::shapes::declared(input).static_shape().ok_or_else(|| anyhow!("the tract target needs a fixed input shape; '{}' has none (export with static shapes)", input.name))?;
+    let [1, 1, h, w] = shape[..] else { bail!("the tract target needs a [1, 1, H, W] image input; '{}' is {shape:?}", input.name) };
+    let frame = calibration_frames(None, 1, h, w, 0)?.frames.remove(0).image;
+    Ok(vec![(input.name.clone(), frame)])
+}
+
+/// tract's NNEF with its ONNX extensions; PyTorch's value names ("onnx::Conv_12") need the
+/// extended identifier syntax.
+fn nnef() -> tract_nnef::framework::Nnef {
+    let mut n = tract_nnef::nnef().with_onnx();
+    n.allow_extended_identifier_syntax = true;
+    n
+}
+
+fn write_nnef(model: &ModelProto, feeds: &[(String, Tensor)], tar: &Path) -> Result<()> {
+    // Model metadata (class-name dictionaries and the like) is not needed to run, and its
+    // strings do not survive tract's NNEF properties parser.
+    let mut bare = model.clone();
+    bare.metadata_props.clear();
+    let (typed, _, _) = typed_model(&bare, feeds)?;
+    let tmp = tar.with_extension("tar.tmp");
+    let file = std::fs::File::create(&tmp)?;
+    let written = nnef().write_to_tar(&typed, file).map_err(|e| anyhow!("{e:#}"));
+    match written {
+        Ok(_) => Ok(std::fs::rename(&tmp, tar)?),
+        Err(e) => {
+            let _ = std::fs::remove_file(&tmp);
+            Err(e)
+        }
+    }
+}
+
+/// Outputs of the first run and the median time of `RUNS` runs.
+fn timed_runs(rt: &mut TractRuntime, feeds: &[(String, Tensor)]) -> Result<(crate::runtime::NamedTensors, f64)> {
+    let out = rt.run(feeds)?;
+    let mut times: Vec<f64> = (0..RUNS)
+        .map(|_| {
+            let t = Instant::now();
+            rt.run(feeds).map(|_| t.elapsed().as_secs_f64() * 1e3)
+        })
+        .collect::<Result<_>>()?;
+    times.sort_by(f64::total_cmp);
+    Ok((out, times[RUNS / 2]))
+}

@@ -1,0 +1,35 @@
+//! `compile --target tract`: the folder proves tract loads and runs the model with fixed
+//! shapes and matches ONNX Runtime; an NNEF archive is kept only when it loads faster.
+
+mod common;
+use common::*;
+
+#[test]
+fn tract_target_writes_a_checked_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    for model in ["models/trained/pdinet_v5_tiny_trained.onnx", "models/fixtures/pdinet_v8_input_op17_nofold.onnx"] {
+        let out = dir.path().join(std::path::Path::new(model).file_stem().unwrap());
+        let r = cli(&["compile", model, "--pipeline", "passes/detect-f32.yaml", "--psf", "calib/single_lwir_blur.npy", "--target", "tract", "-o", out.to_str().unwrap(), "--json"]);
+        assert_eq!(r.code, 0, "{}", r.stderr);
+        let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+        let check = &report["target_check"];
+        println!("{model}: {check}");
+        assert!(check["rel_l2_vs_ort"].as_f64().unwrap() <= 1e-4, "{check}");
+        let load = check["load"].as_str().unwrap();
+        assert!(out.join(load).is_file(), "{load} is in the folder");
+        assert_eq!(out.join("model.nnef.tar").is_file(), load == "model.nnef.tar", "{}", check["nnef"]);
+        let tract_yaml = std::fs::read_to_string(out.join("tract.yaml")).unwrap();
+        assert!(tract_yaml.contains("onnx_load_ms") && tract_yaml.contains("shape"));
+        assert!(std::fs::read_to_string(out.join("manifest.yaml")).unwrap().contains("target: tract"));
+    }
+}
+
+#[test]
+fn tract_target_refuses_an_unbound_blur_map_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("cut");
+    let r = cli(&["compile", "models/fixtures/pdinet_v5_input_op17_nofold.onnx", "--pipeline", "passes/detect-cut.yaml", "--target", "tract", "-o", out.to_str().unwrap()]);
+    assert_eq!(r.code, 2, "{}", r.stderr);
+    assert!(r.stderr.contains("one image input") && r.stderr.lines().count() == 1, "{}", r.stderr);
+    assert!(!out.join("model.onnx").exists(), "no half-written folder");
+}
