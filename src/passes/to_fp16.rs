@@ -66,10 +66,11 @@ impl Pass for ToFp16 {
         let src = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?.clone();
         let graph = Graph::build(&src)?;
         let inf = infer(&graph);
-        let is_f32 = |v: &str| match graph.initializers.get(v) {
-            Some(t) => t.data_type == DType::F32.onnx_code(),
-            None => inf.types.get(v).and_then(|t| t.dtype) == Some(DType::F32),
+        let dtype_of = |v: &str| match graph.initializers.get(v) {
+            Some(t) => DType::from_onnx(t.data_type),
+            None => inf.types.get(v).and_then(|t| t.dtype),
         };
+        let is_f32 = |v: &str| dtype_of(v) == Some(DType::F32);
 
         // Weights: convertible unless a value overflows f16.
         let mut overflowing: HashSet<&str> = HashSet::new();
@@ -104,6 +105,9 @@ impl Pass for ToFp16 {
                     Some(format!("weight '{w}' exceeds f16's range"))
                 } else if !n.output.iter().filter(|v| !v.is_empty()).all(|v| is_f32(v)) {
                     Some("an output is not float32".to_string())
+                } else if n.input.iter().filter(|v| !v.is_empty()).any(|v| dtype_of(v).is_none()) {
+                    // Casting needs to know which inputs are float.
+                    Some("an input's type is unknown".to_string())
                 } else {
                     None
                 };
