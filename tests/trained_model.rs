@@ -15,6 +15,17 @@ fn eval_set(dir: &std::path::Path) -> std::path::PathBuf {
     set.join("degraded")
 }
 
+/// Compiles `model` with `recipe` into `out`, then verifies it against `model` on `data`:
+/// the compile report and the verify report.
+fn compile_and_verify(model: &std::path::Path, recipe: &str, out: &std::path::Path, data: &std::path::Path) -> (serde_json::Value, serde_json::Value) {
+    let r = cli(&["compile", model.to_str().unwrap(), "--pipeline", recipe, "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap(), "--json"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    let r = cli(&["verify", "--reference", model.to_str().unwrap(), "--candidate", out.join("model.onnx").to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "--data", data.to_str().unwrap(), "--runs", "1", "--no-tract", "--json"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    (report, serde_json::from_str(&r.stdout).unwrap())
+}
+
 #[test]
 fn trained_model_detects_and_survives_the_lossless_compile() {
     let model = repo().join("models/trained/pdinet_v5_tiny_trained.onnx");
@@ -22,12 +33,7 @@ fn trained_model_detects_and_survives_the_lossless_compile() {
     let card: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(repo().join("models/trained/card.json")).unwrap()).unwrap();
     let dir = tempfile::tempdir().unwrap();
     let data = eval_set(dir.path());
-    let out = dir.path().join("compiled");
-    let r = cli(&["compile", model.to_str().unwrap(), "--pipeline", "passes/detect-f32.yaml", "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap()]);
-    assert_eq!(r.code, 0, "{}", r.stderr);
-    let r = cli(&["verify", "--reference", model.to_str().unwrap(), "--candidate", out.join("model.onnx").to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "--data", data.to_str().unwrap(), "--runs", "1", "--no-tract", "--json"]);
-    assert_eq!(r.code, 0, "{}", r.stderr);
-    let j: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    let (_, j) = compile_and_verify(&model, "passes/detect-f32.yaml", &dir.path().join("compiled"), &data);
     let reference = &j["detection"]["reference_vs_labels"];
     let candidate = &j["detection"]["candidate_vs_labels"];
     let (m50, m5095) = (reference["map50"].as_f64().unwrap(), reference["map50_95"].as_f64().unwrap());
@@ -52,14 +58,8 @@ fn pruning_the_trained_model_reports_what_compensation_recovers() {
         let recipe = dir.path().join(format!("{mode}.yaml"));
         let text = std::fs::read_to_string(repo().join("passes/detect-pruned-f32.yaml")).unwrap().replace("compensate: lstsq,", &format!("compensate: {mode},"));
         std::fs::write(&recipe, text).unwrap();
-        let out = dir.path().join(mode);
-        let r = cli(&["compile", model.to_str().unwrap(), "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap(), "--json"]);
-        assert_eq!(r.code, 0, "{}", r.stderr);
-        let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+        let (report, j) = compile_and_verify(&model, recipe.to_str().unwrap(), &dir.path().join(mode), &data);
         let prune = report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == "prune").unwrap()["details"].clone();
-        let r = cli(&["verify", "--reference", model.to_str().unwrap(), "--candidate", out.join("model.onnx").to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "--data", data.to_str().unwrap(), "--runs", "1", "--no-tract", "--json"]);
-        assert_eq!(r.code, 0, "{}", r.stderr);
-        let j: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
         let d = &j["detection"];
         rows.push((mode, d["reference_vs_labels"]["map50_95"].as_f64().unwrap(), d["candidate_vs_labels"]["map50_95"].as_f64().unwrap(), d["agreement"]["map50_95"].as_f64().unwrap(), prune));
     }
@@ -80,12 +80,7 @@ fn int8_and_fp16_keep_the_trained_models_accuracy() {
     let data = eval_set(dir.path());
     let mut maps = Vec::new();
     for recipe in ["detect-f32", "detect-int8", "detect-fp16"] {
-        let out = dir.path().join(recipe);
-        let r = cli(&["compile", model.to_str().unwrap(), "--pipeline", &format!("passes/{recipe}.yaml"), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap(), "--json"]);
-        assert_eq!(r.code, 0, "{}", r.stderr);
-        let r = cli(&["verify", "--reference", model.to_str().unwrap(), "--candidate", out.join("model.onnx").to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "--data", data.to_str().unwrap(), "--runs", "1", "--no-tract", "--json"]);
-        assert_eq!(r.code, 0, "{}", r.stderr);
-        let j: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+        let (_, j) = compile_and_verify(&model, &format!("passes/{recipe}.yaml"), &dir.path().join(recipe), &data);
         let d = &j["detection"];
         let m = d["candidate_vs_labels"]["map50_95"].as_f64().unwrap();
         println!("{recipe}: mAP@.5:.95 vs labels {m:.4}, agreement with the original {:.4}", d["agreement"]["map50_95"].as_f64().unwrap());

@@ -146,7 +146,7 @@ impl Pass for Quantize {
         clock.lap("layer_analysis");
 
         let mixed = match o.error_budget {
-            Some(budget) => mixed_precision(&MixedPrecision { float: &float, graph: &graph, keep: &keep, layers: &alone.layers, frames: &analysis, threads, budget, max_layers: o.max_float_layers }, &emit_with)?,
+            Some(budget) => mixed_precision(&MixedPrecision { float: &float, quantized: &quantized, graph: &graph, keep: &keep, layers: &alone.layers, frames: &analysis, threads, budget, max_layers: o.max_float_layers }, &emit_with)?,
             None => Mixed::default(),
         };
         warnings.extend(mixed.warning.clone());
@@ -238,6 +238,8 @@ fn sigmoid_input(graph: &Graph, v: &str) -> Option<String> {
 
 struct MixedPrecision<'a> {
     float: &'a ModelProto,
+    /// The model with every plannable layer quantized (where the search starts).
+    quantized: &'a ModelProto,
     graph: &'a Graph<'a>,
     keep: &'a HashSet<String>,
     layers: &'a [LayerError],
@@ -261,8 +263,7 @@ struct Mixed {
 fn mixed_precision(m: &MixedPrecision, emit_with: &dyn Fn(&Plan) -> Result<(ModelProto, crate::quant::qdq::Emitted)>) -> Result<Mixed> {
     let mut ranked: Vec<&LayerError> = m.layers.iter().collect();
     ranked.sort_by(|a, b| b.alone.rel_l2.total_cmp(&a.alone.rel_l2));
-    let base = plan(m.graph, m.keep);
-    let mut worst = worst_rel_l2(&attribution::output_errors(m.float, &emit_with(&base)?.0, m.frames, m.threads)?);
+    let mut worst = worst_rel_l2(&attribution::output_errors(m.float, m.quantized, m.frames, m.threads)?);
     let mut names = m.keep.clone();
     let mut out = Mixed::default();
     for layer in ranked.into_iter().take(m.max_layers) {

@@ -147,11 +147,15 @@ impl Pass for ToFp16 {
         // Weights-only mode: float32 initializers become f16 initializers behind a Cast.
         if !o.activations {
             for t in &src.initializer {
-                if t.data_type != DType::F32.onnx_code() || overflowing.contains(t.name.as_str()) || to_tensor(t)?.len() < 2 {
+                if t.data_type != DType::F32.onnx_code() || overflowing.contains(t.name.as_str()) {
+                    continue;
+                }
+                let value = to_tensor(t)?;
+                if value.len() < 2 {
                     continue;
                 }
                 let h = fresh_name(&g, &format!("{}_fp16", t.name));
-                set_initializer(&mut g, from_tensor(&h, &to_f16(&to_tensor(t)?)));
+                set_initializer(&mut g, from_tensor(&h, &to_f16(&value)));
                 g.initializer.retain(|x| x.name != t.name);
                 g.input.retain(|x| x.name != t.name);
                 casts.push(node("Cast", &format!("{}_to_f32", t.name), vec![h], vec![t.name.clone()], vec![to_attr(DType::F32)]));

@@ -108,8 +108,7 @@ pub fn alone(model: &ModelProto, plan: &Plan, params: &HashMap<String, QParams>,
 /// Per-tensor parameters of a constant operand, as emission gives it.
 fn constant_params(g: &Graph, name: &str, ty: ActivationType) -> Option<QParams> {
     let t = to_tensor(g.initializers.get(name)?).ok()?;
-    let (lo, hi) = t.as_f32()?.iter().fold((0.0f64, 0.0f64), |(a, b), &x| (a.min(x as f64), b.max(x as f64)));
-    Some(QParams::activation(lo, hi, ty))
+    Some(QParams::covering(t.as_f32()?, ty))
 }
 
 /// Error of every quantized value in `quantized` (named by `dequantized`) against `float`.

@@ -51,6 +51,12 @@ impl QParams {
         QParams { scale, zero_point, qmin, qmax }
     }
 
+    /// Parameters covering every value of a constant (a gate map, an added constant).
+    pub fn covering(values: &[f32], ty: ActivationType) -> QParams {
+        let (lo, hi) = values.iter().fold((0.0f64, 0.0f64), |(a, b), &x| (a.min(x as f64), b.max(x as f64)));
+        QParams::activation(lo, hi, ty)
+    }
+
     pub fn quantize(&self, x: f64) -> i32 {
         ((x / self.scale).round() as i64 + self.zero_point as i64).clamp(self.qmin as i64, self.qmax as i64) as i32
     }

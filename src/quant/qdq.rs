@@ -73,8 +73,7 @@ pub fn emit(model: &ModelProto, plan: &Plan, o: &EmitOptions) -> Result<(ModelPr
             if !constants.contains_key(&name) {
                 let t = to_tensor(t)?;
                 let v = t.as_f32().expect("planned constants are f32");
-                let (lo, hi) = v.iter().fold((0.0f64, 0.0f64), |(a, b), &x| (a.min(x as f64), b.max(x as f64)));
-                let p = QParams::activation(lo, hi, o.activations);
+                let p = QParams::covering(v, o.activations);
                 let q = quantized_tensor(&t.shape, v.iter().map(|&x| p.quantize(x as f64)), o.activations);
                 let qname = fresh_name(&g, &format!("{name}_quantized"));
                 set_initializer(&mut g, from_tensor(&qname, &q));
