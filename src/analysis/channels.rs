@@ -201,6 +201,12 @@ pub fn analyse(g: &Graph, inf: &Inferred, protected: &[String]) -> ChannelAnalys
 /// Convolutions whose output reaches a graph output without passing another convolution:
 /// the detector's last layers, whose channel layout is the output format.
 pub(crate) fn head_convolutions(g: &Graph) -> Vec<usize> {
+    head_convolutions_through(g, |_| false)
+}
+
+/// [`head_convolutions`], looking past the convolutions `transparent` accepts (a YOLOv8
+/// DFL's fixed arange convolution is part of the decode, not of the detector).
+pub(crate) fn head_convolutions_through(g: &Graph, transparent: impl Fn(&crate::onnx::proto::NodeProto) -> bool) -> Vec<usize> {
     let mut found = Vec::new();
     let mut seen = HashSet::new();
     let mut stack: Vec<&str> = g.proto.output.iter().map(|o| o.name.as_str()).collect();
@@ -210,7 +216,7 @@ pub(crate) fn head_convolutions(g: &Graph) -> Vec<usize> {
             continue;
         }
         let n = g.node(i);
-        if matches!(n.op_type.as_str(), "Conv" | "ConvTranspose") {
+        if matches!(n.op_type.as_str(), "Conv" | "ConvTranspose") && !transparent(n) {
             found.push(i);
         } else {
             stack.extend(n.input.iter().filter(|s| !s.is_empty() && !g.initializers.contains_key(s.as_str())).map(String::as_str));

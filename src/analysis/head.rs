@@ -2,9 +2,9 @@
 
 use crate::ir::{Graph, Inferred};
 use crate::onnx::tensor_proto::to_tensor;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum HeadKind {
     /// sigmoid -> (xy*2-0.5+grid)*stride, (wh*2)^2*anchor -> [1, N, 5+nc]

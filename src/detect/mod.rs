@@ -2,6 +2,7 @@
 
 pub mod decode;
 pub mod nms;
+pub mod split_head;
 
 /// One detection in pixel coordinates of the network input.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]

@@ -730,3 +730,15 @@ fn int_elementwise(op: &str, ts: &[Tensor]) -> Option<Tensor> {
     let dt = match op { "Equal" => DType::Bool, "Where" => ts[1].dtype(), _ => ts[0].dtype() };
     Some(cast_like(Tensor::new(shape, TensorData::I64(r)), dt))
 }
+
+/// The model's one image input (initializer-shadowing inputs aside), which must be a fixed
+/// [1, C, H, W]; `who` names what needs it in the error.
+pub fn static_image_input(g: &crate::onnx::proto::GraphProto, who: &str) -> anyhow::Result<(String, [usize; 4])> {
+    use anyhow::{anyhow, bail};
+    let inits: std::collections::HashSet<&str> = g.initializer.iter().map(|t| t.name.as_str()).collect();
+    let inputs: Vec<_> = g.input.iter().filter(|v| !inits.contains(v.name.as_str())).collect();
+    let [input] = inputs[..] else { bail!("{who} needs one image input; this model has {} (bind the blur map with bind-psf and --psf)", inputs.len()) };
+    let shape = declared(input).static_shape().ok_or_else(|| anyhow!("{who} needs a fixed input shape; '{}' has none (export with static shapes)", input.name))?;
+    let [1, c, h, w] = shape[..] else { bail!("{who} needs a [1, C, H, W] image input; '{}' is {shape:?}", input.name) };
+    Ok((input.name.clone(), [1, c, h, w]))
+}

@@ -113,3 +113,14 @@ pub fn sort_topologically(g: &mut GraphProto) -> anyhow::Result<()> {
     g.node = order.into_iter().map(|i| nodes[i].take().expect("each index once")).collect();
     Ok(())
 }
+
+/// A value's declaration with a static shape.
+pub fn tensor_value_info(name: &str, dtype: crate::tensor::DType, shape: &[usize]) -> crate::onnx::proto::ValueInfoProto {
+    use crate::onnx::proto::{Dimension, DimensionValue, TensorShapeProto, TensorTypeProto, TypeProto, TypeValue};
+    let dim = shape.iter().map(|&d| Dimension { value: Some(DimensionValue::DimValue(d as i64)), denotation: String::new() }).collect();
+    crate::onnx::proto::ValueInfoProto {
+        name: name.to_string(),
+        r#type: Some(TypeProto { value: Some(TypeValue::TensorType(TensorTypeProto { elem_type: dtype.onnx_code(), shape: Some(TensorShapeProto { dim }) })), denotation: String::new() }),
+        ..Default::default()
+    }
+}

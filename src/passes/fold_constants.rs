@@ -162,7 +162,6 @@ fn evaluation_model(model: &ModelProto, plan: &Plan) -> ModelProto {
 /// Records inferred types in value_info (outputs and inputs excluded); returns how many
 /// intermediate values still lack a static shape.
 pub fn write_value_info(g: &mut GraphProto) -> Result<usize> {
-    use crate::onnx::proto::{Dimension, DimensionValue, TensorShapeProto, TensorTypeProto, TypeProto, TypeValue};
     let (infos, missing) = {
         let graph = Graph::build(g)?;
         let inf = infer(&graph);
@@ -172,14 +171,7 @@ pub fn write_value_info(g: &mut GraphProto) -> Result<usize> {
         for o in g.node.iter().flat_map(|n| n.output.iter()).filter(|o| !o.is_empty() && !interface.contains(o.as_str())) {
             let t = inf.types.get(o);
             match (t.and_then(|t| t.static_shape()), t.and_then(|t| t.dtype)) {
-                (Some(s), Some(dt)) => {
-                    let dim = s.iter().map(|&d| Dimension { value: Some(DimensionValue::DimValue(d as i64)), denotation: String::new() }).collect();
-                    infos.push(ValueInfoProto {
-                        name: o.clone(),
-                        r#type: Some(TypeProto { value: Some(TypeValue::TensorType(TensorTypeProto { elem_type: dt.onnx_code(), shape: Some(TensorShapeProto { dim }) })), denotation: String::new() }),
-                        ..Default::default()
-                    });
-                }
+                (Some(s), Some(dt)) => infos.push(crate::onnx::edit::tensor_value_info(o, dt, &s)),
                 _ => missing += 1,
             }
         }

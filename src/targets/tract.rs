@@ -89,13 +89,12 @@ pub fn write(dir: &Path, model: &ModelProto) -> Result<TractArtifact> {
 /// One simulated camera frame for the model's single image input, whose shape must be fixed.
 fn fixed_inputs(model: &ModelProto) -> Result<Vec<(String, Tensor)>> {
     let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
-    let inits: std::collections::HashSet<&str> = g.initializer.iter().map(|t| t.name.as_str()).collect();
-    let inputs: Vec<_> = g.input.iter().filter(|v| !inits.contains(v.name.as_str())).collect();
-    let [input] = inputs[..] else { bail!("the tract target needs one image input; this model has {} (bind the blur map with bind-psf and --psf)", inputs.len()) };
-    let shape = crate::ir::shapes::declared(input).static_shape().ok_or_else(|| anyhow!("the tract target needs a fixed input shape; '{}' has none (export with static shapes)", input.name))?;
-    let [1, 1, h, w] = shape[..] else { bail!("the tract target needs a [1, 1, H, W] image input; '{}' is {shape:?}", input.name) };
+    let (name, [_, c, h, w]) = crate::ir::shapes::static_image_input(g, "the tract target")?;
+    if c != 1 {
+        bail!("the tract target needs a single-channel infrared image input; '{name}' has {c} channels");
+    }
     let frame = calibration_frames(None, 1, h, w, 0)?.frames.remove(0).image;
-    Ok(vec![(input.name.clone(), frame)])
+    Ok(vec![(name, frame)])
 }
 
 /// tract's NNEF with its ONNX extensions; PyTorch's value names ("onnx::Conv_12") need the
