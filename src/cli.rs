@@ -153,6 +153,21 @@ pub enum Command {
         #[arg(long)]
         junit: Option<PathBuf>,
     },
+    /// Build DIR/model.rknn from a `--target rknn` folder with RKNN-Toolkit2 2.5.0 (installed
+    /// into the cache on first use), simulate it and compare with ONNX Runtime; exit 1 when an
+    /// output or score group falls below --min-cosine or a layer lands on the CPU.
+    RknnConvert {
+        dir: PathBuf,
+        /// Validation frames (PNG/TIFF 8/16-bit grayscale or .npy); simulated when not given.
+        #[arg(long)]
+        data: Option<PathBuf>,
+        #[arg(long, default_value_t = 8)]
+        frames: usize,
+        #[arg(long, default_value_t = 0.99)]
+        min_cosine: f64,
+        #[arg(long)]
+        json: bool,
+    },
 }
 
 #[derive(Subcommand)]
@@ -270,6 +285,17 @@ pub fn run(cli: Cli) -> Result<u8> {
                 print!("{}", report.render());
             }
             if !report.passed {
+                return Ok(EXIT_GATE_FAILED);
+            }
+        }
+        Command::RknnConvert { dir, data, frames, min_cosine, json } => {
+            let r = crate::targets::rknn_convert::convert(&crate::targets::rknn_convert::ConvertRequest { dir, data, frames, min_cosine })?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r)?);
+            } else {
+                print!("{}", r.render());
+            }
+            if !r.passed {
                 return Ok(EXIT_GATE_FAILED);
             }
         }

@@ -69,6 +69,7 @@ pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
     let target_check = match req.target {
         crate::targets::Target::Onnx => None,
         crate::targets::Target::Tract => Some(serde_json::to_value(crate::targets::tract::write(&req.out_dir, &model)?)?),
+        crate::targets::Target::Rknn => Some(serde_json::to_value(crate::targets::rknn::write(&req.out_dir, &model, req.context.calib.as_deref())?)?),
     };
     let out_model = req.out_dir.join("model.onnx");
     if req.external_data {

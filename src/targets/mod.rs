@@ -1,6 +1,8 @@
 //! Deployment targets: what `compile --target` writes beside the model so that the folder
 //! is what ships.
 
+pub mod rknn;
+pub mod rknn_convert;
 pub mod tract;
 
 /// Where the compiled model goes.
@@ -13,4 +15,7 @@ pub enum Target {
     /// DIR/model.onnx checked on tract with fixed shapes, an NNEF archive where it loads
     /// faster, and DIR/tract.yaml with the measurements.
     Tract,
+    /// DIR/model.onnx from rknn-legalize with DIR/rknn.yaml, DIR/dataset.txt and the
+    /// calibration frames it lists: the input of `pdi-compile rknn-convert DIR`.
+    Rknn,
 }

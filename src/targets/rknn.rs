@@ -1,0 +1,109 @@
+//! `--target rknn`: what RKNN-Toolkit2 needs to build model.rknn for the RK3588 NPU.
+//!
+//! DIR/rknn.yaml       the toolkit's configuration (platform, preprocessing, quantization,
+//!                     outputs, head layout for post-processing); edit it, then run
+//!                     `pdi-compile rknn-convert DIR`
+//! DIR/dataset.txt     the calibration frames, one .npy per line (relative to DIR)
+//! DIR/calib/*.npy     those frames, [1, 1, H, W] float32 in 0..255
+//!
+//! The model must come out of `rknn-legalize` (float, per-stride outputs, head layout in its
+//! metadata): the toolkit quantizes it itself, from these frames.
+
+use crate::calib_frames::calibration_frames;
+use crate::detect::split_head::HeadLayout;
+use crate::fsutil::{ensure_dir, write_atomic};
+use crate::onnx::proto::ModelProto;
+use anyhow::{anyhow, bail, Result};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Calibration frames written for the toolkit (more adds build time, not accuracy, on
+/// models this size: measured cosine is flat from 16 frames up).
+pub const DATASET_FRAMES: usize = 32;
+/// Frames reach the NPU as 8-bit pixels; the model reads [0, 1]: the NPU divides by 255.
+pub const PIXEL_SCALE: f32 = 255.0;
+/// Highest ONNX IR version RKNN-Toolkit2 2.5 reads.
+pub const MAX_IR_VERSION: i64 = 9;
+
+/// DIR/rknn.yaml: read back by `rknn-convert`.
+#[derive(Serialize, Deserialize, Clone, Debug)]
+pub struct RknnConfig {
+    pub target_platform: String,
+    pub model: String,
+    pub input: RknnInput,
+    pub quantization: RknnQuantization,
+    pub outputs: Vec<String>,
+    pub head_layout: HeadLayout,
+}
+
+#[derive(Serialize, Deserialize, Clone, Debug)]
+pub struct RknnInput {
+    pub name: String,
+    pub shape: [usize; 4],
+    /// Per channel; the NPU computes (pixel − mean) / std before the first layer.
+    pub mean_values: Vec<Vec<f32>>,
+    pub std_values: Vec<Vec<f32>>,
+}
+
+#[derive(Serialize, Deserialize, Clone, Debug)]
+pub struct RknnQuantization {
+    pub do_quantization: bool,
+    /// RKNN-Toolkit2 names: w8a8, w8a16, w16a16i.
+    pub quantized_dtype: String,
+    /// normal (min/max), mmse, kl_divergence.
+    pub quantized_algorithm: String,
+    /// channel (per-channel weights) or layer.
+    pub quantized_method: String,
+    pub dataset: String,
+    pub dataset_frames: usize,
+    pub dataset_source: String,
+}
+
+pub fn write(dir: &Path, model: &ModelProto, calib: Option<&Path>) -> Result<RknnConfig> {
+    let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+    let layout = HeadLayout::from_model(model).map_err(|_| {
+        anyhow!("the rknn target needs a model from the rknn-legalize pass (per-stride outputs, no decode): compile with passes/detect-rknn.yaml or passes/detect-pruned-rknn.yaml")
+    })?;
+    if model.ir_version > MAX_IR_VERSION {
+        bail!("IR version {} is above RKNN-Toolkit2's {MAX_IR_VERSION}; rknn-legalize lowers it: keep it last in the recipe", model.ir_version);
+    }
+    if let Some(n) = g.node.iter().find(|n| matches!(n.op_type.as_str(), "QuantizeLinear" | "DequantizeLinear" | "Cast")) {
+        bail!("node '{}' ({}) is not float: RKNN-Toolkit2 quantizes the float model itself; drop quantize/fp16 from the recipe", n.name, n.op_type);
+    }
+    let (name, shape) = crate::ir::shapes::static_image_input(g, "the rknn target")?;
+    let frames = calibration_frames(calib, DATASET_FRAMES, shape[2], shape[3], 0)?;
+    let calib_dir = dir.join("calib");
+    ensure_dir(&calib_dir)?;
+    let mut list = String::new();
+    for (i, f) in frames.frames.iter().enumerate() {
+        let file = format!("calib/frame_{i:03}.npy");
+        write_atomic(&dir.join(&file), &crate::optics::npy::to_bytes(&f.image.shape, &pixels(f.image.as_f32().unwrap_or(&[]))))?;
+        list.push_str(&file);
+        list.push('\n');
+    }
+    write_atomic(&dir.join("dataset.txt"), list.as_bytes())?;
+    let config = RknnConfig {
+        target_platform: "rk3588".into(),
+        model: "model.onnx".into(),
+        input: RknnInput { name, shape, mean_values: vec![vec![0.0; shape[1]]], std_values: vec![vec![PIXEL_SCALE; shape[1]]] },
+        quantization: RknnQuantization {
+            do_quantization: true,
+            quantized_dtype: "w8a8".into(),
+            quantized_algorithm: "normal".into(),
+            quantized_method: "channel".into(),
+            dataset: "dataset.txt".into(),
+            dataset_frames: frames.frames.len(),
+            dataset_source: frames.source,
+        },
+        outputs: layout.output_names(),
+        head_layout: layout,
+    };
+    write_atomic(&dir.join("rknn.yaml"), yaml_serde::to_string(&config)?.as_bytes())?;
+    Ok(config)
+}
+
+/// A [0, 1] frame as the 8-bit pixel values the NPU is fed (rounded: the camera delivers
+/// integers, and the reference run gets exactly these values divided by 255).
+pub fn pixels(v: &[f32]) -> Vec<f32> {
+    v.iter().map(|&x| (x.clamp(0.0, 1.0) * PIXEL_SCALE).round()).collect()
+}

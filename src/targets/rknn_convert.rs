@@ -1,0 +1,293 @@
+//! `pdi-compile rknn-convert DIR`: build DIR/model.rknn with RKNN-Toolkit2 and prove it.
+//!
+//! Runs the toolkit (2.5.0, in its own venv under the cache folder, installed on first use)
+//! on DIR/rknn.yaml, then its simulator on validation frames the calibration never saw, and
+//! compares every output, and every channel group of the score outputs on its own, with ONNX
+//! Runtime running DIR/model.onnx in float on the same frames. Scores get their own check
+//! because they are what INT8 loses first: a score tensor sharing a range with pixel
+//! coordinates quantizes to all zeros while the boxes still look fine. Also reported: the
+//! layers the toolkit placed on the CPU (none is the only acceptable answer for a model
+//! made of NPU ops), and how many detections the two agree on after post-processing.
+
+use super::rknn::{pixels, RknnConfig, PIXEL_SCALE};
+use crate::analysis::head::HeadKind;
+use crate::calib_frames::calibration_frames;
+use crate::detect::split_head::{detect, HeadLayout};
+use crate::detect::{iou, Detection};
+use crate::fsutil::write_atomic;
+use crate::metrics::tensor_error::{ErrorSums, TensorError};
+use crate::runtime::{ort_runtime::OrtRuntime, Runtime};
+use crate::tensor::Tensor;
+use anyhow::{anyhow, bail, Context, Result};
+use serde::Serialize;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+const WORKER: &str = include_str!("rknn_worker.py");
+/// What the toolkit needs beside itself (its own pins: newer torch, numpy, onnx or protobuf
+/// break its import or its ONNX loader).
+const TOOLKIT_PINS: &[&str] = &[
+    "rknn-toolkit2==2.5.0",
+    "torch<=2.4",
+    "numpy<=1.26.4",
+    "onnx<=1.18",
+    "onnxruntime<=1.19",
+    "protobuf<=4.25.4",
+    "opencv-python-headless<4.11",
+];
+const STAMP: &str = ".installed-rknn-toolkit2-2.5.0";
+/// Post-processing thresholds for the detection agreement (YOLO's deployment defaults).
+const CONF: f32 = 0.25;
+const NMS_IOU: f32 = 0.45;
+/// Seed of the validation frames; the calibration set uses seed 0.
+const VALIDATION_SEED: u64 = 1_000_003;
+
+pub struct ConvertRequest {
+    pub dir: PathBuf,
+    /// Validation frames (PNG/TIFF/.npy); simulated when absent.
+    pub data: Option<PathBuf>,
+    pub frames: usize,
+    /// Lowest acceptable cosine for every output and channel group.
+    pub min_cosine: f64,
+}
+
+#[derive(Serialize)]
+pub struct Agreement {
+    pub name: String,
+    #[serde(flatten)]
+    pub error: TensorError,
+}
+
+#[derive(Serialize)]
+pub struct ConvertReport {
+    pub rknn: String,
+    pub toolkit: String,
+    pub seconds: f64,
+    pub validation: String,
+    pub outputs: Vec<Agreement>,
+    /// Channel groups: objectness and class channels of the score outputs, all levels.
+    pub groups: Vec<Agreement>,
+    pub npu_layers: usize,
+    pub cpu_layers: Vec<String>,
+    /// Detections after post-processing (conf 0.25, NMS 0.45): ORT's, the simulator's, and
+    /// how many of ORT's the simulator found (same class, IoU ≥ 0.5).
+    pub detections_ort: usize,
+    pub detections_rknn: usize,
+    pub detections_matched: usize,
+    pub min_cosine: f64,
+    pub failures: Vec<String>,
+    pub passed: bool,
+}
+
+pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
+    let t = Instant::now();
+    let dir = &req.dir;
+    let text = std::fs::read_to_string(dir.join("rknn.yaml")).with_context(|| format!("{} has no rknn.yaml: compile into it with --target rknn first", dir.display()))?;
+    let config: RknnConfig = yaml_serde::from_str(&text).map_err(|e| anyhow!("{}: {e}", dir.join("rknn.yaml").display()))?;
+    let model = crate::onnx::load(&dir.join(&config.model))?.model;
+    if req.frames == 0 {
+        bail!("--frames must be at least 1");
+    }
+    let python = toolkit_python()?;
+
+    let [_, _, h, w] = config.input.shape;
+    let set = calibration_frames(req.data.as_deref(), req.frames, h, w, VALIDATION_SEED)?;
+    let work = tempfile::tempdir()?;
+    let mut frame_paths = Vec::new();
+    for (i, f) in set.frames.iter().enumerate() {
+        let p = work.path().join(format!("frame_{i:04}.npy"));
+        std::fs::write(&p, crate::optics::npy::to_bytes(&f.image.shape, &pixels(f.image.as_f32().unwrap_or(&[]))))?;
+        frame_paths.push(p);
+    }
+    let rknn_tmp = dir.join("model.rknn.tmp");
+    let result_path = work.path().join("result.json");
+    let job = serde_json::json!({
+        "config": config,
+        "frames": frame_paths,
+        "out_dir": work.path(),
+        "rknn": rknn_tmp,
+        "result": result_path,
+    });
+    let job_path = work.path().join("job.json");
+    std::fs::write(&job_path, serde_json::to_vec(&job)?)?;
+    let worker = work.path().join("rknn_worker.py");
+    std::fs::write(&worker, WORKER)?;
+    eprintln!("rknn-convert: building {} with rknn-toolkit2 and simulating {} frames", dir.join("model.rknn").display(), set.frames.len());
+    let log_path = dir.join("rknn_build.log");
+    let log = std::fs::File::create(&log_path)?;
+    let status = Command::new(&python).arg(&worker).arg(&job_path).current_dir(dir).stdout(log.try_clone()?).stderr(log).status().with_context(|| format!("cannot run {}", python.display()))?;
+    let log = String::from_utf8_lossy(&std::fs::read(&log_path)?).into_owned();
+    if !status.success() {
+        let _ = std::fs::remove_file(&rknn_tmp);
+        let last = log.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message");
+        bail!("rknn-toolkit2 failed: {last} (full log: {})", log_path.display());
+    }
+    std::fs::rename(&rknn_tmp, dir.join("model.rknn"))?;
+    let result: serde_json::Value = serde_json::from_slice(&std::fs::read(&result_path)?)?;
+
+    let placement = placement(&log);
+    if placement.is_empty() {
+        bail!("no layer placement table in {}: this toolkit version logs differently", log_path.display());
+    }
+    let cpu_layers: Vec<String> = placement.iter().filter(|l| l.target == "CPU" && l.op != "InputOperator" && l.op != "OutputOperator").map(|l| format!("{} {}", l.op, l.name)).collect();
+    let npu_layers = placement.iter().filter(|l| l.target == "NPU").count();
+
+    let mut ort = OrtRuntime::new(&model)?;
+    let layout = &config.head_layout;
+    let mut per_output: Vec<(String, ErrorSums)> = config.outputs.iter().map(|n| (n.clone(), ErrorSums::default())).collect();
+    let mut per_group: Vec<(&'static str, ErrorSums)> = Vec::new();
+    let (mut n_ort, mut n_rknn, mut matched) = (0, 0, 0);
+    for (i, f) in set.frames.iter().enumerate() {
+        let x: Vec<f32> = pixels(f.image.as_f32().unwrap_or(&[])).into_iter().map(|p| p / PIXEL_SCALE).collect();
+        let reference: HashMap<String, Tensor> = ort.run(&[(config.input.name.clone(), Tensor::f32(f.image.shape.clone(), x))])?.into_iter().collect();
+        let mut simulated = HashMap::new();
+        for (name, sums) in per_output.iter_mut() {
+            let a = crate::optics::npy::read(&work.path().join(format!("{i:04}_{name}.npy")))?;
+            let r = reference.get(name).ok_or_else(|| anyhow!("ONNX Runtime gave no output '{name}'"))?;
+            if a.data.len() != r.len() {
+                bail!("the simulator's '{name}' has shape {:?}, ONNX Runtime's {:?}", a.shape, r.shape);
+            }
+            let rv = r.data.to_f64();
+            sums.add(rv.iter().copied(), a.data.iter().map(|&v| v as f64));
+            for (group, channels) in score_groups(layout, name, &r.shape) {
+                let idx = group_index(&mut per_group, group);
+                let plane = r.shape[2] * r.shape[3];
+                per_group[idx].1.add(channels.iter().flat_map(|&c| rv[c * plane..(c + 1) * plane].iter().copied()), channels.iter().flat_map(|&c| a.data[c * plane..(c + 1) * plane].iter().map(|&v| v as f64)));
+            }
+            simulated.insert(name.clone(), Tensor::f32(r.shape.clone(), a.data));
+        }
+        let (d_ort, _) = detect(layout, &reference, CONF, NMS_IOU, 300)?;
+        let (d_rknn, _) = detect(layout, &simulated, CONF, NMS_IOU, 300)?;
+        n_ort += d_ort.len();
+        n_rknn += d_rknn.len();
+        matched += count_matched(&d_ort, &d_rknn);
+    }
+    let outputs: Vec<Agreement> = per_output.into_iter().map(|(name, s)| Agreement { name, error: s.finish() }).collect();
+    let groups: Vec<Agreement> = per_group.into_iter().map(|(name, s)| Agreement { name: name.into(), error: s.finish() }).collect();
+    let mut failures: Vec<String> = outputs
+        .iter()
+        .chain(&groups)
+        .filter(|a| !(a.error.cosine >= req.min_cosine))
+        .map(|a| format!("{}: cosine {:.5} < {}", a.name, a.error.cosine, req.min_cosine))
+        .collect();
+    failures.extend(cpu_layers.iter().map(|l| format!("placed on the CPU: {l}")));
+    let report = ConvertReport {
+        rknn: dir.join("model.rknn").display().to_string(),
+        toolkit: result["toolkit"].as_str().unwrap_or("?").to_string(),
+        seconds: t.elapsed().as_secs_f64(),
+        validation: set.source,
+        outputs,
+        groups,
+        npu_layers,
+        cpu_layers,
+        detections_ort: n_ort,
+        detections_rknn: n_rknn,
+        detections_matched: matched,
+        min_cosine: req.min_cosine,
+        passed: failures.is_empty(),
+        failures,
+    };
+    write_atomic(&dir.join("rknn_report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    Ok(report)
+}
+
+/// One row of the toolkit's placement table.
+struct Placed {
+    op: String,
+    target: String,
+    name: String,
+}
+
+/// The verbose build log's table: "D RKNN: [time] ID OpType DataType Target … FullName".
+fn placement(log: &str) -> Vec<Placed> {
+    let mut rows = std::collections::BTreeMap::new();
+    for line in log.lines() {
+        let Some(rest) = line.split_once("RKNN: [").and_then(|(_, r)| r.split_once(']')).map(|(_, r)| r) else { continue };
+        let t: Vec<&str> = rest.split_whitespace().collect();
+        if let (Some(Ok(id)), Some(target)) = (t.first().map(|s| s.parse::<usize>()), t.get(3).filter(|s| matches!(**s, "CPU" | "NPU" | "GPU"))) {
+            rows.insert(id, Placed { op: t[1].to_string(), target: target.to_string(), name: t.last().unwrap_or(&"?").to_string() });
+        }
+    }
+    rows.into_values().collect()
+}
+
+fn group_index(groups: &mut Vec<(&'static str, ErrorSums)>, name: &'static str) -> usize {
+    if let Some(i) = groups.iter().position(|g| g.0 == name) {
+        return i;
+    }
+    groups.push((name, ErrorSums::default()));
+    groups.len() - 1
+}
+
+/// Channel groups of a score output: YOLOv5 scores hold objectness then classes per anchor.
+fn score_groups(layout: &HeadLayout, output: &str, shape: &[usize]) -> Vec<(&'static str, Vec<usize>)> {
+    let Some(level) = layout.levels.iter().find(|l| l.scores == output) else { return vec![] };
+    let nc = layout.classes;
+    match layout.kind {
+        HeadKind::Yolov5Anchor => {
+            let anchors = level.anchors.len();
+            vec![("objectness", (0..anchors).map(|a| a * (1 + nc)).collect()), ("classes", (0..anchors).flat_map(|a| (1..=nc).map(move |k| a * (1 + nc) + k)).collect())]
+        }
+        _ => vec![("classes", (0..shape.get(1).copied().unwrap_or(0)).collect())],
+    }
+}
+
+/// Reference detections found by the candidate: same class, IoU ≥ 0.5, each used once.
+fn count_matched(reference: &[Detection], candidate: &[Detection]) -> usize {
+    let mut used = vec![false; candidate.len()];
+    reference
+        .iter()
+        .filter(|r| {
+            let best = candidate.iter().enumerate().filter(|(j, c)| !used[*j] && c.class == r.class && iou(&c.bbox, &r.bbox) >= 0.5).max_by(|a, b| iou(&a.1.bbox, &r.bbox).total_cmp(&iou(&b.1.bbox, &r.bbox)));
+            best.map(|(j, _)| used[j] = true).is_some()
+        })
+        .count()
+}
+
+/// The toolkit venv's Python, installing it on first use.
+fn toolkit_python() -> Result<PathBuf> {
+    if let Some(p) = std::env::var_os("PDI_RKNN_PYTHON") {
+        return Ok(PathBuf::from(p));
+    }
+    let cache = std::env::var_os("PDI_CACHE").map(PathBuf::from).or_else(|| std::env::var_os("HOME").map(|h| Path::new(&h).join(".cache/pdi-compile"))).ok_or_else(|| anyhow!("set PDI_CACHE or HOME: rknn-convert installs rknn-toolkit2 into a cache folder"))?;
+    let venv = cache.join("rknn-env");
+    let python = venv.join("bin/python");
+    if venv.join(STAMP).exists() {
+        return Ok(python);
+    }
+    let imports = |p: &Path| Command::new(p).args(["-c", "import rknn.api"]).output().is_ok_and(|o| o.status.success());
+    if !(python.exists() && imports(&python)) {
+        eprintln!("rknn-convert: installing rknn-toolkit2 2.5.0 into {} (first use: ~6 min, ~6 GB)", venv.display());
+        let base = std::env::var_os("PDI_RKNN_BASE_PYTHON").map(PathBuf::from).unwrap_or_else(|| PathBuf::from("python3.11"));
+        let run = |cmd: &mut Command, what: &str| -> Result<()> {
+            let s = cmd.status().with_context(|| format!("{what}: cannot start it"))?;
+            if !s.success() {
+                bail!("{what} failed ({s})");
+            }
+            Ok(())
+        };
+        run(Command::new(&base).args(["-m", "venv"]).arg(&venv), "creating the rknn-toolkit2 venv (it needs Python 3.11: install python3.11 or set PDI_RKNN_BASE_PYTHON)")?;
+        run(Command::new(venv.join("bin/pip")).args(["install", "-q", "--disable-pip-version-check"]).args(TOOLKIT_PINS), "pip install rknn-toolkit2==2.5.0")?;
+        if !imports(&python) {
+            bail!("rknn-toolkit2 installed into {} but does not import; delete that folder and retry", venv.display());
+        }
+    }
+    std::fs::write(venv.join(STAMP), b"")?;
+    Ok(python)
+}
+
+impl ConvertReport {
+    pub fn render(&self) -> String {
+        let mut s = format!("{} (rknn-toolkit2 {}) in {:.0} s; {}\n", self.rknn, self.toolkit, self.seconds, self.validation);
+        s += &format!("  {:<18} {:>9} {:>10} {:>10}\n", "simulator vs ORT", "cosine", "rel L2", "max abs");
+        for a in self.outputs.iter().chain(&self.groups) {
+            s += &format!("  {:<18} {:>9.5} {:>10.3e} {:>10.3e}\n", a.name, a.error.cosine, a.error.rel_l2, a.error.max_abs);
+        }
+        s += &format!("  layers: {} on the NPU, {} on the CPU\n", self.npu_layers, self.cpu_layers.len());
+        s += &format!("  detections (conf {CONF}): ORT {}, simulator {}, matched {}\n", self.detections_ort, self.detections_rknn, self.detections_matched);
+        s += &if self.passed { format!("  PASS (every cosine ≥ {}, nothing on the CPU)\n", self.min_cosine) } else { format!("  FAIL: {}\n", self.failures.join("; ")) };
+        s
+    }
+}

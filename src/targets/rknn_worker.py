@@ -1,0 +1,49 @@
+"""rknn-convert's worker, run by `pdi-compile rknn-convert` inside the RKNN-Toolkit2 venv.
+
+Reads a job (JSON: the folder's rknn.yaml as JSON, frame paths, where to write), builds the
+.rknn file, runs the toolkit's simulator on the validation frames and saves every output as
+.npy; writes a result JSON with the toolkit's version. The toolkit's native library prints
+its layer placement table to stdout in verbose mode; the caller keeps stdout as the log.
+"""
+import json
+import sys
+from importlib.metadata import version
+
+import numpy as np
+from rknn.api import RKNN
+
+def ok(code, what):
+    if code != 0:
+        raise SystemExit(f"rknn-toolkit2 {what} failed (code {code}); see the log above")
+
+
+def main(job_path):
+    with open(job_path) as f:
+        job = json.load(f)
+    cfg, q = job["config"], job["config"]["quantization"]
+    r = RKNN(verbose=True)
+    ok(r.config(
+        mean_values=cfg["input"]["mean_values"],
+        std_values=cfg["input"]["std_values"],
+        target_platform=cfg["target_platform"],
+        quantized_dtype=q["quantized_dtype"],
+        quantized_algorithm=q["quantized_algorithm"],
+        quantized_method=q["quantized_method"],
+    ), "config")
+    ok(r.load_onnx(model=cfg["model"], outputs=cfg["outputs"]), "load_onnx")
+    ok(r.build(do_quantization=q["do_quantization"], dataset=q["dataset"] if q["do_quantization"] else None), "build")
+    ok(r.export_rknn(job["rknn"]), "export_rknn")
+    ok(r.init_runtime(), "init_runtime (simulator)")
+    for i, path in enumerate(job["frames"]):
+        outs = r.inference(inputs=[np.load(path)], data_format="nchw")
+        if len(outs) != len(cfg["outputs"]):
+            raise SystemExit(f"the simulator returned {len(outs)} outputs; rknn.yaml lists {len(cfg['outputs'])}")
+        for name, o in zip(cfg["outputs"], outs):
+            np.save(f"{job['out_dir']}/{i:04d}_{name}.npy", np.ascontiguousarray(o, dtype=np.float32))
+    r.release()
+    with open(job["result"], "w") as f:
+        json.dump({"toolkit": version("rknn-toolkit2")}, f)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1])
