@@ -204,9 +204,21 @@ pub(crate) fn head_convolutions(g: &Graph) -> Vec<usize> {
     head_convolutions_through(g, |_| false)
 }
 
+/// The detector's last convolutions, past a YOLOv8 DFL's fixed arange convolution (the one
+/// convolution that reads a Softmax: it belongs to the decode, not to the detector).
+pub(crate) fn detector_convolutions(g: &Graph) -> Vec<usize> {
+    head_convolutions_through(g, |n| g.producer_of(&n.input[0]).is_some_and(|p| p.op_type == "Softmax"))
+}
+
+/// Nodes of the in-graph decode: everything after the detector's last convolutions. Their
+/// constants (anchors, grids, the DFL arange) are fixed by the format, never fitted.
+pub(crate) fn decode_nodes(g: &Graph) -> HashSet<usize> {
+    g.downstream_of(&detector_convolutions(g).into_iter().collect())
+}
+
 /// [`head_convolutions`], looking past the convolutions `transparent` accepts (a YOLOv8
 /// DFL's fixed arange convolution is part of the decode, not of the detector).
-pub(crate) fn head_convolutions_through(g: &Graph, transparent: impl Fn(&crate::onnx::proto::NodeProto) -> bool) -> Vec<usize> {
+fn head_convolutions_through(g: &Graph, transparent: impl Fn(&crate::onnx::proto::NodeProto) -> bool) -> Vec<usize> {
     let mut found = Vec::new();
     let mut seen = HashSet::new();
     let mut stack: Vec<&str> = g.proto.output.iter().map(|o| o.name.as_str()).collect();

@@ -77,7 +77,6 @@ impl<'m> Graph<'m> {
         self.consumers.get(value).map_or(&[], |v| v.as_slice())
     }
 
-    /// Node indices that `values` depend on (their backward cone), in no particular order.
     /// Nodes reachable from the outputs of `from` (not `from` themselves).
     pub fn downstream_of(&self, from: &std::collections::HashSet<usize>) -> std::collections::HashSet<usize> {
         let mut seen = std::collections::HashSet::new();
@@ -91,6 +90,7 @@ impl<'m> Graph<'m> {
         seen
     }
 
+    /// Which nodes `values` depend on (their backward cone), by node index.
     pub fn cone(&self, values: impl IntoIterator<Item = &'m str>) -> Vec<bool> {
         let mut seen = vec![false; self.proto.node.len()];
         let mut stack: Vec<&str> = values.into_iter().collect();

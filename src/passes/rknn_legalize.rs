@@ -16,7 +16,7 @@
 //! Reports: outputs, the head layout, the decode check, and what the NPU may not take as is
 //! (large kernels, non-nearest Resize, Concat channel counts that are not multiples of 16).
 
-use crate::analysis::channels::head_convolutions_through;
+use crate::analysis::channels::detector_convolutions;
 use crate::analysis::head::{self, HeadKind};
 use crate::detect::split_head::{decode_dense, HeadLayout, Level, METADATA_KEY};
 use crate::ir::{infer, shapes::static_image_input, Graph};
@@ -88,8 +88,7 @@ impl Pass for RknnLegalize {
             let classes = h.classes.ok_or_else(|| anyhow!("cannot tell the class count from the detection output's shape"))?;
             let decoded = h.output.clone().ok_or_else(|| anyhow!("the detection output has no static 3-D shape"))?;
             let mut levels: BTreeMap<usize, Vec<HeadConv>> = BTreeMap::new();
-            let after_softmax = |n: &NodeProto| graph.producer_of(&n.input[0]).is_some_and(|p| p.op_type == "Softmax");
-            for node in head_convolutions_through(&graph, after_softmax) {
+            for node in detector_convolutions(&graph) {
                 let output = graph.node(node).output[0].clone();
                 let Some([1, channels, height, width]) = inf.shape(&output).as_deref().map(|s| <[usize; 4]>::try_from(s).unwrap_or([0; 4])) else {
                     bail!("head convolution '{}' has no static [1, C, H, W] output shape", graph.node(node).name);

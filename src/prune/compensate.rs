@@ -212,8 +212,9 @@ pub fn compensate(original: &ModelProto, pruned: &mut ModelProto, kept: &HashMap
         let graph = Graph::build(g)?;
         let depth = depths(&graph);
         let drift = drifted(&graph, kept);
+        let decode = crate::analysis::channels::decode_nodes(&graph);
         for (i, n) in g.node.iter().enumerate() {
-            if n.op_type != "Conv" || !n.domain.is_empty() || !drift.contains(&n.input[0]) {
+            if n.op_type != "Conv" || !n.domain.is_empty() || !drift.contains(&n.input[0]) || decode.contains(&i) {
                 continue;
             }
             let Some(o) = orig_g.node.iter().find(|m| m.output.first() == n.output.first()) else { continue };

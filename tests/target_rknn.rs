@@ -1,0 +1,132 @@
+//! The RKNN target: `rknn-legalize` ends the graph at the head convolutions without
+//! changing what the detector computes, the split-head post-processing in Rust decodes it
+//! exactly like the original in-graph decode, `--target rknn` writes what the toolkit needs,
+//! and `rknn-convert` builds it with RKNN-Toolkit2 2.5.0 and checks its simulator.
+
+mod common;
+use common::*;
+use pdi_compile::analysis::head::HeadKind;
+use pdi_compile::detect::decode::candidates;
+use pdi_compile::detect::nms::nms;
+use pdi_compile::detect::split_head::{decode_dense, detect, HeadLayout};
+use pdi_compile::runtime::{ort_runtime::OrtRuntime, Runtime};
+use std::collections::HashMap;
+
+fn compile(model: &str, pipeline: &str, out: &std::path::Path, extra: &[&str]) -> CliResult {
+    let mut args = vec!["compile", model, "--pipeline", pipeline, "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap()];
+    args.extend(extra);
+    cli(&args)
+}
+
+/// Same frame through the original (in-graph decode) and the legalized model: the Rust
+/// decode of the split outputs equals the original's decoded tensor, and the deployment
+/// path (score skipping + NMS) equals NMS over the original's candidates.
+#[test]
+fn split_head_post_processing_equals_the_in_graph_decode() {
+    let dir = tempfile::tempdir().unwrap();
+    for (model, kind) in [("models/trained/pdinet_v5_tiny_trained.onnx", HeadKind::Yolov5Anchor), ("models/fixtures/pdinet_v8_input_op17_nofold.onnx", HeadKind::Yolov8Dfl)] {
+        let (orig_dir, legal_dir) = (dir.path().join("orig"), dir.path().join("legal"));
+        assert_eq!(compile(model, "passes/detect-f32.yaml", &orig_dir, &[]).code, 0);
+        let r = compile(model, "passes/detect-rknn.yaml", &legal_dir, &[]);
+        assert_eq!(r.code, 0, "{}", r.stderr);
+        let (orig, legal) = (load(&orig_dir.join("model.onnx")), load(&legal_dir.join("model.onnx")));
+        let layout = HeadLayout::from_model(&legal).unwrap();
+        assert_eq!(layout.kind, kind);
+        assert!(legal.ir_version <= 9);
+        let g = legal.graph.as_ref().unwrap();
+        let outputs: Vec<&str> = g.output.iter().map(|o| o.name.as_str()).collect();
+        assert_eq!(outputs, layout.output_names().iter().map(String::as_str).collect::<Vec<_>>());
+        for o in &g.output {
+            let producer = g.node.iter().find(|n| n.output.contains(&o.name)).unwrap();
+            assert!(["Conv", "Sigmoid", "Clip"].contains(&producer.op_type.as_str()), "{} ends in {}", o.name, producer.op_type);
+        }
+        assert!(!g.node.iter().any(|n| ["Reshape", "Transpose", "Softmax", "Pow"].contains(&n.op_type.as_str())), "no decode left");
+
+        let feeds = inputs_for(&orig, 3);
+        let original = OrtRuntime::new(&orig).unwrap().run(&feeds).unwrap().remove(0).1;
+        let split: HashMap<_, _> = OrtRuntime::new(&legal).unwrap().run(&feeds).unwrap().into_iter().collect();
+        let dense = decode_dense(&layout, &split).unwrap();
+        assert_eq!(dense.shape, original.shape);
+        let worst = original.as_f32().unwrap().iter().zip(dense.as_f32().unwrap()).map(|(a, b)| (a - b).abs() / a.abs().max(1.0)).fold(0f32, f32::max);
+        println!("{model}: split decode vs in-graph decode, worst relative difference {worst:.2e}");
+        assert!(worst <= 1e-4, "{worst}");
+
+        let conf = if kind == HeadKind::Yolov5Anchor { 0.25 } else { 0.02 };
+        let expected = nms(candidates(kind, &original, conf).unwrap(), 0.45, 300);
+        let (got, skipped) = detect(&layout, &split, conf, 0.45, 300).unwrap();
+        assert!(!expected.is_empty(), "{model}: the frame has detections to compare");
+        assert_eq!(got.len(), expected.len(), "{model}");
+        for (a, b) in got.iter().zip(&expected) {
+            assert_eq!(a.class, b.class);
+            assert!((a.score - b.score).abs() <= 1e-4 && a.bbox.iter().zip(&b.bbox).all(|(x, y)| (x - y).abs() <= 1e-2), "{a:?} vs {b:?}");
+        }
+        println!("  {} detections; {} of {} cells skipped before decoding", got.len(), skipped.skipped, skipped.cells);
+        assert!(skipped.skipped > 0);
+    }
+}
+
+#[test]
+fn rknn_target_writes_config_dataset_and_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("rknn");
+    let r = compile("models/fixtures/pdinet_v8_const_op13_fold.onnx", "passes/detect-rknn.yaml", &out, &["--target", "rknn"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let config: serde_json::Value = yaml_serde::from_str(&std::fs::read_to_string(out.join("rknn.yaml")).unwrap()).unwrap();
+    assert_eq!(config["target_platform"], "rk3588");
+    assert_eq!(config["outputs"].as_array().unwrap().len(), 9, "boxes, scores, score_sum × 3 strides");
+    assert_eq!(config["input"]["std_values"][0][0], 255.0);
+    let lines: Vec<String> = std::fs::read_to_string(out.join("dataset.txt")).unwrap().lines().map(String::from).collect();
+    assert_eq!(lines.len(), config["quantization"]["dataset_frames"].as_u64().unwrap() as usize);
+    let frame = pdi_compile::optics::npy::read(&out.join(&lines[0])).unwrap();
+    assert_eq!(frame.shape, vec![1, 1, 192, 256]);
+    assert!(frame.data.iter().all(|&p| (0.0..=255.0).contains(&p) && p == p.round()), "8-bit pixel values");
+    assert!(frame.data.iter().any(|&p| p > 16.0), "not a blank frame");
+    assert!(std::fs::read_to_string(out.join("manifest.yaml")).unwrap().contains("target: rknn"));
+}
+
+#[test]
+fn rknn_target_refuses_models_it_cannot_take() {
+    let dir = tempfile::tempdir().unwrap();
+    // No rknn-legalize in the recipe: the decode is still in the graph.
+    let out = dir.path().join("decoded");
+    let r = compile("models/fixtures/pdinet_v5_input_op17_nofold.onnx", "passes/detect-f32.yaml", &out, &["--target", "rknn"]);
+    assert_eq!(r.code, 2);
+    assert!(r.stderr.contains("rknn-legalize") && r.stderr.lines().count() == 1, "{}", r.stderr);
+    assert!(!out.join("model.onnx").exists(), "no half-written folder");
+    // Opset above what the toolkit reads.
+    let mut m = load(&repo().join("models/fixtures/pdinet_v5_const_op17_fold.onnx"));
+    m.opset_import.iter_mut().for_each(|o| o.version = 21);
+    let high = dir.path().join("op21.onnx");
+    pdi_compile::onnx::save(&m, &high).unwrap();
+    let r = compile(high.to_str().unwrap(), "passes/detect-rknn.yaml", &dir.path().join("op21"), &[]);
+    assert_eq!(r.code, 2);
+    assert!(r.stderr.contains("opset ≤ 19") && r.stderr.contains("21"), "{}", r.stderr);
+}
+
+/// RKNN-Toolkit2 2.5.0 builds the trained model and its simulator agrees with ORT (installs
+/// the toolkit into the cache on first use: the test never skips).
+#[test]
+fn rknn_convert_builds_and_its_simulator_agrees_with_ort() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("rknn");
+    let r = compile("models/trained/pdinet_v5_tiny_trained.onnx", "passes/detect-pruned-rknn.yaml", &out, &["--target", "rknn"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let r = cli(&["rknn-convert", out.to_str().unwrap(), "--json"]);
+    assert_eq!(r.code, 0, "{}\n{}", r.stdout, r.stderr);
+    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    println!("{report:#}");
+    assert!(out.join("model.rknn").metadata().unwrap().len() > 10_000);
+    assert_eq!(report["cpu_layers"].as_array().unwrap().len(), 0);
+    assert!(report["npu_layers"].as_u64().unwrap() > 50);
+    for a in report["outputs"].as_array().unwrap().iter().chain(report["groups"].as_array().unwrap()) {
+        assert!(a["cosine"].as_f64().unwrap() >= 0.99, "{a}");
+    }
+    let names: Vec<&str> = report["groups"].as_array().unwrap().iter().map(|g| g["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["objectness", "classes"]);
+    let (found, matched) = (report["detections_ort"].as_u64().unwrap(), report["detections_matched"].as_u64().unwrap());
+    assert!(found > 0 && matched as f64 >= 0.9 * found as f64, "{matched} of {found}");
+    // A gate it cannot meet fails with exit 1 and says why.
+    let r = cli(&["rknn-convert", out.to_str().unwrap(), "--min-cosine", "0.999999"]);
+    assert_eq!(r.code, 1, "{}", r.stdout);
+    assert!(r.stdout.contains("FAIL") && r.stdout.contains("cosine"), "{}", r.stdout);
+}
