@@ -153,6 +153,30 @@ pub enum Command {
         #[arg(long)]
         junit: Option<PathBuf>,
     },
+    /// Compile and measure every variant (unpruned/pruned × f32/fp16/int8 × ORT/tract, and the
+    /// original): DIR/bench.md and .json (Pareto front marked), DIR/bench.svg and .png.
+    Bench {
+        model: PathBuf,
+        #[arg(short = 'o', long = "out")]
+        out: PathBuf,
+        /// Camera blur map for models that take it as an input.
+        #[arg(long)]
+        psf: Option<PathBuf>,
+        /// Calibration frames for pruning and quantization; simulated when not given.
+        #[arg(long)]
+        calib: Option<PathBuf>,
+        /// Verification frames (YOLO labels beside them are not needed); simulated when not given.
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Simulated verification frames when no --data is given.
+        #[arg(long, default_value_t = 4)]
+        frames: usize,
+        /// Timed runs per model and engine.
+        #[arg(long, default_value_t = 10)]
+        runs: usize,
+        #[arg(long)]
+        json: bool,
+    },
     /// Build DIR/model.rknn from a `--target rknn` folder with RKNN-Toolkit2 2.5.0 (installed
     /// into the cache on first use), simulate it and compare with ONNX Runtime; exit 1 when an
     /// output or score group falls below --min-cosine or a layer lands on the CPU.
@@ -286,6 +310,15 @@ pub fn run(cli: Cli) -> Result<u8> {
             }
             if !report.passed {
                 return Ok(EXIT_GATE_FAILED);
+            }
+        }
+        Command::Bench { model, out, psf, calib, data, frames, runs, json } => {
+            let r = crate::bench::bench(&crate::bench::BenchRequest { model, out: out.clone(), psf, calib, data, frames, runs })?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r)?);
+            } else {
+                print!("{}", r.markdown());
+                println!("wrote {}", crate::bench::out_files(&out));
             }
         }
         Command::RknnConvert { dir, data, frames, min_cosine, json } => {

@@ -2,9 +2,11 @@
 //!
 //! Module map: `onnx` (schema, I/O), `ir` (graph index, shapes, costs), `analysis`
 //! (recognizing PDI-Net's parts), `pipeline` (passes and recipes), `runtime` (ONNX Runtime
-//! and tract behind one interface), `inspect` and `compile` (the commands), `cli`.
+//! and tract behind one interface), `inspect` and `compile` (the commands), `targets` (what
+//! ships for tract and the RK3588 NPU), `bench` (run time against error), `cli`.
 
 pub mod analysis;
+pub mod bench;
 pub mod calib_frames;
 pub mod cli;
 pub mod compile;

@@ -109,7 +109,7 @@ fn rknn_target_refuses_models_it_cannot_take() {
 fn rknn_convert_builds_and_its_simulator_agrees_with_ort() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("rknn");
-    let r = compile("models/trained/pdinet_v5_tiny_trained.onnx", "passes/detect-pruned-rknn.yaml", &out, &["--target", "rknn"]);
+    let r = compile("models/trained/pdinet_v5_tiny_trained.onnx", "passes/detect-rknn.yaml", &out, &["--target", "rknn"]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let r = cli(&["rknn-convert", out.to_str().unwrap(), "--json"]);
     assert_eq!(r.code, 0, "{}\n{}", r.stdout, r.stderr);

@@ -110,6 +110,9 @@ impl Pass for RknnLegalize {
         for (level, convs) in layout.levels.iter().zip(levels.values()) {
             split_level(g, opset, kind, classes, level, convs, self.options.score_sum, &mut outputs)?;
         }
+        // The layout's order (boxes, scores, score_sum per stride), whatever the convs' order.
+        let order = layout.output_names();
+        outputs.sort_by_key(|o| order.iter().position(|n| *n == o.name));
         g.output = outputs;
         sort_topologically(g)?;
         let (nodes_removed, _, _) = super::dce::eliminate(g)?;

@@ -48,6 +48,25 @@ impl Recipe {
         };
         Ok(Recipe { name: text_field("name"), description: text_field("description"), passes })
     }
+
+    /// The recipe file form, which [`Recipe::parse`] reads back.
+    pub fn to_yaml(&self) -> Result<String> {
+        use yaml_serde::{Mapping, Value};
+        let passes = self
+            .passes
+            .iter()
+            .map(|p| match &p.options {
+                Value::Null => Value::String(p.name.clone()),
+                o => Value::Mapping(Mapping::from_iter([(Value::String(p.name.clone()), o.clone())])),
+            })
+            .collect();
+        let doc = Mapping::from_iter([
+            (Value::String("name".into()), Value::String(self.name.clone())),
+            (Value::String("description".into()), Value::String(self.description.clone())),
+            (Value::String("passes".into()), Value::Sequence(passes)),
+        ]);
+        Ok(yaml_serde::to_string(&doc)?)
+    }
 }
 
 fn pass_spec(item: &yaml_serde::Value) -> Result<PassSpec> {
@@ -74,5 +93,7 @@ mod tests {
         assert_eq!(r.passes[1].options.get("ratio").and_then(|v| v.as_f64()), Some(0.5));
         assert!(Recipe::parse("name: x\npases: []\n").is_err());
         assert!(Recipe::parse("passes: 3\n").is_err());
+        let again = Recipe::parse(&r.to_yaml().unwrap()).unwrap();
+        assert_eq!((again.passes[0].name.as_str(), again.passes[1].options.get("ratio").and_then(|v| v.as_f64())), ("dce", Some(0.5)));
     }
 }

@@ -54,6 +54,12 @@ pub struct RknnQuantization {
     pub quantized_algorithm: String,
     /// channel (per-channel weights) or layer.
     pub quantized_method: String,
+    /// Let the toolkit raise layers whose simulated output cosine falls below
+    /// `auto_hybrid_cos_thresh` to 16 bits (RKNN's mixed precision).
+    #[serde(default)]
+    pub auto_hybrid: bool,
+    #[serde(default = "default_hybrid_cosine")]
+    pub auto_hybrid_cos_thresh: f64,
     pub dataset: String,
     pub dataset_frames: usize,
     pub dataset_source: String,
@@ -91,6 +97,8 @@ pub fn write(dir: &Path, model: &ModelProto, calib: Option<&Path>) -> Result<Rkn
             quantized_dtype: "w8a8".into(),
             quantized_algorithm: "normal".into(),
             quantized_method: "channel".into(),
+            auto_hybrid: false,
+            auto_hybrid_cos_thresh: default_hybrid_cosine(),
             dataset: "dataset.txt".into(),
             dataset_frames: frames.frames.len(),
             dataset_source: frames.source,
@@ -100,6 +108,11 @@ pub fn write(dir: &Path, model: &ModelProto, calib: Option<&Path>) -> Result<Rkn
     };
     write_atomic(&dir.join("rknn.yaml"), yaml_serde::to_string(&config)?.as_bytes())?;
     Ok(config)
+}
+
+/// The toolkit's own default.
+fn default_hybrid_cosine() -> f64 {
+    0.98
 }
 
 /// A [0, 1] frame as the 8-bit pixel values the NPU is fed (rounded: the camera delivers

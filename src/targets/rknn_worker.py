@@ -29,10 +29,10 @@ def main(job_path):
         quantized_dtype=q["quantized_dtype"],
         quantized_algorithm=q["quantized_algorithm"],
         quantized_method=q["quantized_method"],
-        auto_hybrid_cos_thresh=q.get("auto_hybrid_cos_thresh", 0.98),
+        auto_hybrid_cos_thresh=q["auto_hybrid_cos_thresh"],
     ), "config")
     ok(r.load_onnx(model=cfg["model"], outputs=cfg["outputs"]), "load_onnx")
-    ok(r.build(do_quantization=q["do_quantization"], dataset=q["dataset"] if q["do_quantization"] else None, auto_hybrid=q.get("auto_hybrid", False)), "build")
+    ok(r.build(do_quantization=q["do_quantization"], dataset=q["dataset"] if q["do_quantization"] else None, auto_hybrid=q["auto_hybrid"]), "build")
     ok(r.export_rknn(job["rknn"]), "export_rknn")
     ok(r.init_runtime(), "init_runtime (simulator)")
     for i, path in enumerate(job["frames"]):

@@ -61,6 +61,8 @@ pub struct OutputReport {
     pub ort: TensorError,
     /// Candidate on tract vs candidate on ORT.
     pub tract: Option<TensorError>,
+    /// Candidate on tract vs reference on ORT (what a tract deployment loses in all).
+    pub tract_vs_reference: Option<TensorError>,
     pub groups: Vec<GroupError>,
 }
 
@@ -202,8 +204,9 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
         } else {
             Vec::new()
         };
-        let tract = (!tract_vals[k].is_empty()).then(|| compare(&c, &flat(&tract_vals[k])));
-        outputs.push(OutputReport { name: name.clone(), ort: compare(&r, &c), tract, groups });
+        let t = (!tract_vals[k].is_empty()).then(|| flat(&tract_vals[k]));
+        let (tract, tract_vs_reference) = (t.as_ref().map(|t| compare(&c, t)), t.as_ref().map(|t| compare(&r, t)));
+        outputs.push(OutputReport { name: name.clone(), ort: compare(&r, &c), tract, tract_vs_reference, groups });
     }
 
     let detection = decodable.then(|| detection_report(&head, &frames, &ref_dets, &cand_dets, &tract_dets));

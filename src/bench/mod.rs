@@ -1,0 +1,206 @@
+//! `pdi-compile bench MODEL -o DIR`: run time against error for every deployment variant.
+//!
+//! Variants: unpruned and pruned (detect-f32 / detect-pruned-f32), each in f32, FP16 and
+//! INT8 (the last pass of detect-fp16 / detect-int8 applied to the f32 compile, so pruning
+//! and the lossless passes run once), each on ONNX Runtime and tract, beside the original on
+//! ONNX Runtime. Every variant is verified against the original on the same frames: rel L2
+//! of the detection outputs and mAP@0.5:0.95 agreement (the original's detections as
+//! ground truth), latency interleaved with the original's in the same run.
+//!
+//! DIR/bench.json, DIR/bench.md   the table (Pareto-optimal rows marked)
+//! DIR/bench.svg, DIR/bench.png   latency against rel L2 and against mAP agreement
+//! DIR/recipes/, DIR/variants/    what was compiled, and the compiled folders
+
+pub mod plot;
+
+use crate::compile::{compile, CompileRequest};
+use crate::fsutil::{ensure_dir, write_atomic};
+use crate::pipeline::{PassContext, Recipe};
+use crate::verify::{verify, VerifyRequest};
+use anyhow::{anyhow, Result};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+const DETECT_F32: &str = include_str!("../../passes/detect-f32.yaml");
+const DETECT_PRUNED_F32: &str = include_str!("../../passes/detect-pruned-f32.yaml");
+const DETECT_FP16: &str = include_str!("../../passes/detect-fp16.yaml");
+const DETECT_INT8: &str = include_str!("../../passes/detect-int8.yaml");
+
+pub struct BenchRequest {
+    pub model: PathBuf,
+    pub out: PathBuf,
+    pub psf: Option<PathBuf>,
+    pub calib: Option<PathBuf>,
+    /// Verification frames (with labels or not); simulated when absent.
+    pub data: Option<PathBuf>,
+    pub frames: usize,
+    pub runs: usize,
+}
+
+#[derive(Serialize, Clone, Debug)]
+pub struct Row {
+    pub variant: String,
+    pub engine: String,
+    pub latency_ms: f64,
+    /// Latency over the original's on ORT, measured in the same run.
+    pub ratio_vs_original: f64,
+    /// Worst detection output, against the original on ORT.
+    pub rel_l2: f64,
+    pub map_agreement: Option<f64>,
+    pub pareto_rel_l2: bool,
+    pub pareto_map: bool,
+}
+
+#[derive(Serialize)]
+pub struct BenchReport {
+    pub model: String,
+    pub frames: String,
+    pub runs: usize,
+    pub rows: Vec<Row>,
+    /// Seconds per compile, by variant.
+    pub compile_seconds: Vec<(String, f64)>,
+    pub seconds: f64,
+}
+
+pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
+    let t = Instant::now();
+    if req.frames == 0 || req.runs == 0 {
+        anyhow::bail!("--frames and --runs must be at least 1");
+    }
+    let recipes = req.out.join("recipes");
+    ensure_dir(&recipes)?;
+    let write_recipe = |name: &str, text: &str| -> Result<PathBuf> {
+        let p = recipes.join(format!("{name}.yaml"));
+        write_atomic(&p, text.as_bytes())?;
+        Ok(p)
+    };
+    let last_pass_of = |text: &str, name: &str| -> Result<String> {
+        let r = Recipe::parse(text)?;
+        let last = r.passes.last().cloned().ok_or_else(|| anyhow!("built-in recipe has no passes"))?;
+        Recipe { name: name.into(), description: format!("the last pass of {}", r.name), passes: vec![last] }.to_yaml()
+    };
+    let fp16 = write_recipe("fp16", &last_pass_of(DETECT_FP16, "fp16")?)?;
+    let int8 = write_recipe("int8", &last_pass_of(DETECT_INT8, "int8")?)?;
+    let stages = [
+        ("f32", None, write_recipe("f32", DETECT_F32)?),
+        ("pruned-f32", None, write_recipe("pruned-f32", DETECT_PRUNED_F32)?),
+        ("fp16", Some("f32"), fp16.clone()),
+        ("int8", Some("f32"), int8.clone()),
+        ("pruned-fp16", Some("pruned-f32"), fp16),
+        ("pruned-int8", Some("pruned-f32"), int8),
+    ];
+    let variant_dir = |v: &str| req.out.join("variants").join(v);
+    let mut compile_seconds = Vec::new();
+    for (name, from, recipe) in &stages {
+        eprintln!("bench: compiling {name}");
+        let model = from.map_or_else(|| req.model.clone(), |f| variant_dir(f).join("model.onnx"));
+        let c = Instant::now();
+        compile(&CompileRequest {
+            model,
+            pipeline: recipe.clone(),
+            out_dir: variant_dir(name),
+            external_data: false,
+            context: PassContext { psf: req.psf.clone(), calib: req.calib.clone(), keep_outputs: None },
+            target: crate::targets::Target::Onnx,
+        })
+        .map_err(|e| anyhow!("compiling the {name} variant: {e:#}"))?;
+        compile_seconds.push((name.to_string(), c.elapsed().as_secs_f64()));
+    }
+
+    let mut rows = Vec::new();
+    let mut original_ms = Vec::new();
+    for (name, _, _) in &stages {
+        eprintln!("bench: measuring {name} on ONNX Runtime and tract");
+        let r = verify(&VerifyRequest {
+            reference: req.model.clone(),
+            candidate: variant_dir(name).join("model.onnx"),
+            data: req.data.clone(),
+            random: req.frames,
+            psf: req.psf.clone(),
+            gate: None,
+            latency_runs: req.runs,
+            tract: true,
+            seed: 0,
+        })
+        .map_err(|e| anyhow!("measuring the {name} variant: {e:#}"))?;
+        let reference_ms = r.latency[0].median_ms;
+        original_ms.push(reference_ms);
+        let worst = |f: &dyn Fn(&crate::verify::OutputReport) -> Option<f64>| r.outputs.iter().filter_map(f).fold(0.0, f64::max);
+        let det = r.detection.as_ref();
+        rows.push(Row {
+            variant: name.to_string(),
+            engine: "ort".into(),
+            latency_ms: r.latency[1].median_ms,
+            ratio_vs_original: r.latency[1].median_ms / reference_ms,
+            rel_l2: worst(&|o| Some(o.ort.rel_l2)),
+            map_agreement: det.map(|d| d.agreement.map50_95),
+            pareto_rel_l2: false,
+            pareto_map: false,
+        });
+        if let Some(l) = r.latency.get(2) {
+            rows.push(Row {
+                variant: name.to_string(),
+                engine: "tract".into(),
+                latency_ms: l.median_ms,
+                ratio_vs_original: l.median_ms / reference_ms,
+                rel_l2: worst(&|o| o.tract_vs_reference.map(|e| e.rel_l2)),
+                map_agreement: det.and_then(|d| d.agreement_tract.as_ref()).map(|m| m.map50_95),
+                pareto_rel_l2: false,
+                pareto_map: false,
+            });
+        }
+    }
+    original_ms.sort_by(f64::total_cmp);
+    let original = original_ms[original_ms.len() / 2];
+    rows.insert(0, Row { variant: "original".into(), engine: "ort".into(), latency_ms: original, ratio_vs_original: 1.0, rel_l2: 0.0, map_agreement: Some(1.0), pareto_rel_l2: false, pareto_map: false });
+    mark_pareto(&mut rows);
+
+    let report = BenchReport {
+        model: req.model.display().to_string(),
+        frames: req.data.as_ref().map_or(format!("{} synthetic frames, seed 0", req.frames), |d| d.display().to_string()),
+        runs: req.runs,
+        rows,
+        compile_seconds,
+        seconds: 0.0,
+    };
+    let svg = plot::svg(&report.rows, &report.model);
+    let png = plot::png(&report.rows, &report.model)?;
+    let report = BenchReport { seconds: t.elapsed().as_secs_f64(), ..report };
+    write_atomic(&req.out.join("bench.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    write_atomic(&req.out.join("bench.md"), report.markdown().as_bytes())?;
+    write_atomic(&req.out.join("bench.svg"), svg.as_bytes())?;
+    write_atomic(&req.out.join("bench.png"), &png)?;
+    Ok(report)
+}
+
+/// A row is Pareto-optimal when no other row is at least as fast and at least as accurate,
+/// and strictly better in one of the two.
+fn mark_pareto(rows: &mut [Row]) {
+    let snapshot = rows.to_vec();
+    let dominated = |r: &Row, err: &dyn Fn(&Row) -> f64| snapshot.iter().any(|o| o.latency_ms <= r.latency_ms && err(o) <= err(r) && (o.latency_ms < r.latency_ms || err(o) < err(r)));
+    for r in rows.iter_mut() {
+        r.pareto_rel_l2 = !dominated(r, &|x| x.rel_l2);
+        r.pareto_map = r.map_agreement.is_some() && !dominated(r, &|x| -x.map_agreement.unwrap_or(f64::NEG_INFINITY));
+    }
+}
+
+impl BenchReport {
+    pub fn markdown(&self) -> String {
+        let mut s = format!("# pdi-compile bench: {}\n\n{} ; median of {} runs per model, interleaved with the original's.\n`*` marks the Pareto front (latency against rel L2 / against mAP agreement).\n\n", self.model, self.frames, self.runs);
+        s += "| variant | engine | latency ms | vs original | rel L2 | mAP agreement |\n|---|---|---:|---:|---:|---:|\n";
+        for r in &self.rows {
+            let map = r.map_agreement.map_or("-".to_string(), |m| format!("{m:.4}{}", if r.pareto_map { " *" } else { "" }));
+            s += &format!("| {} | {} | {:.1} | {:.3} | {:.2e}{} | {} |\n", r.variant, r.engine, r.latency_ms, r.ratio_vs_original, r.rel_l2, if r.pareto_rel_l2 { " *" } else { "" }, map);
+        }
+        s += "\nCompile seconds: ";
+        s += &self.compile_seconds.iter().map(|(v, t)| format!("{v} {t:.1}")).collect::<Vec<_>>().join(", ");
+        s += &format!("; total {:.0} s.\n", self.seconds);
+        s
+    }
+}
+
+/// For `bench`'s CLI summary.
+pub fn out_files(dir: &Path) -> String {
+    ["bench.md", "bench.json", "bench.svg", "bench.png"].iter().map(|f| dir.join(f).display().to_string()).collect::<Vec<_>>().join(", ")
+}
