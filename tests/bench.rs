@@ -1,0 +1,44 @@
+//! `pdi-compile bench`: every variant is compiled and measured, the Pareto marks follow from
+//! the numbers, and the table and plot files are complete.
+
+mod common;
+use common::*;
+
+#[test]
+fn bench_measures_every_variant_and_marks_the_pareto_front() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("bench");
+    let r = cli(&["bench", "models/fixtures/pdinet_v8_input_op17_nofold.onnx", "--psf", "calib/single_lwir_blur.npy", "--frames", "2", "--runs", "3", "-o", out.to_str().unwrap(), "--json"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    let rows = report["rows"].as_array().unwrap();
+    let mut names: Vec<String> = rows.iter().map(|r| format!("{}/{}", r["variant"].as_str().unwrap(), r["engine"].as_str().unwrap())).collect();
+    names.sort();
+    let mut expected = vec!["original/ort".to_string()];
+    for v in ["f32", "fp16", "int8", "pruned-f32", "pruned-fp16", "pruned-int8"] {
+        expected.extend(["ort", "tract"].map(|e| format!("{v}/{e}")));
+    }
+    expected.sort();
+    assert_eq!(names, expected);
+
+    let num = |r: &serde_json::Value, k: &str| r[k].as_f64().unwrap();
+    for r in rows {
+        assert!(num(r, "latency_ms") > 0.0 && num(r, "rel_l2").is_finite(), "{r}");
+        // Pareto marks follow from the numbers.
+        let dominated = rows.iter().any(|o| num(o, "latency_ms") <= num(r, "latency_ms") && num(o, "rel_l2") <= num(r, "rel_l2") && (num(o, "latency_ms") < num(r, "latency_ms") || num(o, "rel_l2") < num(r, "rel_l2")));
+        assert_eq!(r["pareto_rel_l2"].as_bool().unwrap(), !dominated, "{r}");
+    }
+    let f32_ort = rows.iter().find(|r| r["variant"] == "f32" && r["engine"] == "ort").unwrap();
+    assert!(num(f32_ort, "rel_l2") <= 1e-5, "the lossless compile stays lossless: {f32_ort}");
+    assert!(rows.iter().any(|r| r["pareto_rel_l2"].as_bool().unwrap()));
+
+    let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
+    assert_eq!(md.lines().filter(|l| l.starts_with("| ") && !l.starts_with("| variant")).count(), 13, "{md}");
+    let svg = std::fs::read_to_string(out.join("bench.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("pruned-int8/tract") && svg.contains("Pareto"));
+    let png = image::open(out.join("bench.png")).unwrap().to_rgb8();
+    assert_eq!(png.dimensions(), (1280, 560));
+    let red = png.pixels().filter(|p| p.0 == [214, 39, 40]).count();
+    assert!(red > 100, "the Pareto front is drawn ({red} red pixels)");
+    assert!(out.join("variants/pruned-int8/model.onnx").is_file() && out.join("recipes/int8.yaml").is_file());
+}
