@@ -116,6 +116,7 @@ fn rknn_convert_builds_and_its_simulator_agrees_with_ort() {
     let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
     println!("{report:#}");
     assert!(out.join("model.rknn").metadata().unwrap().len() > 10_000);
+    assert!(!out.join("check0_base_optimize.onnx").exists(), "the toolkit's debug dumps are not left in the artifact");
     assert_eq!(report["cpu_layers"].as_array().unwrap().len(), 0);
     assert!(report["npu_layers"].as_u64().unwrap() > 50);
     for a in report["outputs"].as_array().unwrap().iter().chain(report["groups"].as_array().unwrap()) {
