@@ -124,3 +124,8 @@ pub fn tensor_value_info(name: &str, dtype: crate::tensor::DType, shape: &[usize
         ..Default::default()
     }
 }
+
+/// The model's default-domain ("" or "ai.onnx") opset version.
+pub fn default_opset(model: &crate::onnx::proto::ModelProto) -> Option<i64> {
+    model.opset_import.iter().find(|o| o.domain.is_empty() || o.domain == "ai.onnx").map(|o| o.version)
+}

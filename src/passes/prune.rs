@@ -98,7 +98,7 @@ impl Pass for Prune {
         };
         let plan = select(&analysis, &scores, &SelectOptions { ratio: o.ratio, round_to: o.round_to, scope: o.scope });
         let kept = apply::kept_positions(&analysis, &plan.keep)?;
-        let opset = model.opset_import.iter().find(|s| s.domain.is_empty()).map_or(13, |s| s.version);
+        let opset = crate::onnx::edit::default_opset(model).unwrap_or(13);
         let pg = super::graph_mut(model)?;
         let rewritten = apply::apply(pg, &analysis, &kept, opset)?;
         super::dce::eliminate(pg)?;

@@ -101,10 +101,13 @@ impl Pass for RknnLegalize {
             (h.kind, classes, h.reg_max, decoded, levels)
         };
 
-        let layout = probe_layout(model, kind, classes, reg_max, &decoded, &levels)?;
-        let decode_check = check_decode(model, &layout, &decoded, &levels)?;
+        // One tract plan of the original decode serves the probe and the check.
+        let zeros = zero_logits(&levels);
+        let mut tail = TractRuntime::new(&decode_tail(model, &decoded, &levels)?, &zeros).context("running the original decode on its own")?;
+        let layout = probe_layout(&mut tail, &zeros, kind, classes, reg_max, &levels)?;
+        let decode_check = check_decode(&mut tail, &layout, &levels)?;
 
-        let opset = model_opset(&model.opset_import);
+        let opset = crate::onnx::edit::default_opset(model).unwrap_or(13);
         let g = super::graph_mut(model)?;
         let mut outputs = Vec::new();
         for (level, convs) in layout.levels.iter().zip(levels.values()) {
@@ -152,10 +155,6 @@ fn check_opset(model: &ModelProto) -> Result<()> {
     Ok(())
 }
 
-fn model_opset(imports: &[crate::onnx::proto::OperatorSetIdProto]) -> i64 {
-    imports.iter().find(|o| o.domain.is_empty() || o.domain == "ai.onnx").map_or(13, |o| o.version)
-}
-
 /// The original decode with the head convolutions' outputs as its inputs.
 fn decode_tail(model: &ModelProto, decoded: &str, levels: &BTreeMap<usize, Vec<HeadConv>>) -> Result<ModelProto> {
     let mut tail = model.clone();
@@ -181,19 +180,21 @@ fn decode_tail(model: &ModelProto, decoded: &str, levels: &BTreeMap<usize, Vec<H
     Ok(tail)
 }
 
-fn run_tail(tail: &ModelProto, feeds: &[(String, Tensor)]) -> Result<Tensor> {
-    let mut rt = TractRuntime::new(tail, feeds).context("running the original decode on its own")?;
-    Ok(rt.run(feeds)?.remove(0).1)
+fn run_tail(tail: &mut TractRuntime, feeds: &[(String, Tensor)]) -> Result<Tensor> {
+    Ok(tail.run(feeds)?.remove(0).1)
+}
+
+/// Zero logits for every head convolution output.
+fn zero_logits(levels: &BTreeMap<usize, Vec<HeadConv>>) -> Vec<(String, Tensor)> {
+    levels.values().flatten().map(|c| (c.output.clone(), Tensor::f32(vec![1, c.channels, c.height, c.width], vec![0.0; c.channels * c.height * c.width]))).collect()
 }
 
 /// Reads the layout off the original decode: with zero logits every sigmoid is 0.5 and every
 /// DFL softmax uniform, so YOLOv5 rows hold ((x+0.5)·S, (y+0.5)·S, anchor w, anchor h) and
 /// YOLOv8 columns ((x+0.5)·S, (y+0.5)·S, (R−1)·S, (R−1)·S). Anything else means the rows are
 /// not in the order post-processing assumes, and the pass stops.
-fn probe_layout(model: &ModelProto, kind: HeadKind, classes: usize, reg_max: Option<usize>, decoded: &str, levels: &BTreeMap<usize, Vec<HeadConv>>) -> Result<HeadLayout> {
-    let tail = decode_tail(model, decoded, levels)?;
-    let feeds: Vec<(String, Tensor)> = levels.values().flatten().map(|c| (c.output.clone(), Tensor::f32(vec![1, c.channels, c.height, c.width], vec![0.0; c.channels * c.height * c.width]))).collect();
-    let out = run_tail(&tail, &feeds)?;
+fn probe_layout(tail: &mut TractRuntime, zeros: &[(String, Tensor)], kind: HeadKind, classes: usize, reg_max: Option<usize>, levels: &BTreeMap<usize, Vec<HeadConv>>) -> Result<HeadLayout> {
+    let out = run_tail(tail, zeros)?;
     let v = out.as_f32().ok_or_else(|| anyhow!("the decode's output is not float32"))?;
     let mut layout = HeadLayout { kind, classes, reg_max, levels: Vec::new() };
     let mut row = 0;
@@ -255,22 +256,14 @@ fn layout_rows(levels: &BTreeMap<usize, Vec<HeadConv>>, no: usize) -> usize {
 
 /// Random head logits through the original decode (tract) and through the split tensors and
 /// the Rust decode: the largest difference, relative to the value's magnitude.
-fn check_decode(model: &ModelProto, layout: &HeadLayout, decoded: &str, levels: &BTreeMap<usize, Vec<HeadConv>>) -> Result<f64> {
-    let tail = decode_tail(model, decoded, levels)?;
-    let mut seed = 0x9e3779b97f4a7c15u64;
+fn check_decode(tail: &mut TractRuntime, layout: &HeadLayout, levels: &BTreeMap<usize, Vec<HeadConv>>) -> Result<f64> {
+    let mut rng = crate::optics::rng::Rng::new(0x9e37_79b9);
     let mut feeds = Vec::new();
     let mut split = HashMap::new();
     for (level, convs) in layout.levels.iter().zip(levels.values()) {
         for c in convs {
             let n = c.channels * c.height * c.width;
-            let logits: Vec<f32> = (0..n)
-                .map(|_| {
-                    seed ^= seed << 13;
-                    seed ^= seed >> 7;
-                    seed ^= seed << 17;
-                    ((seed >> 40) as f32 / (1u64 << 24) as f32 - 0.5) * 8.0
-                })
-                .collect();
+            let logits: Vec<f32> = (0..n).map(|_| rng.range(-4.0, 4.0) as f32).collect();
             let t = Tensor::f32(vec![1, c.channels, c.height, c.width], logits);
             for (name, value) in split_values(layout, level, c, &t)? {
                 split.insert(name, value);
@@ -278,7 +271,7 @@ fn check_decode(model: &ModelProto, layout: &HeadLayout, decoded: &str, levels: 
             feeds.push((c.output.clone(), t));
         }
     }
-    let reference = run_tail(&tail, &feeds)?;
+    let reference = run_tail(tail, &feeds)?;
     let ours = decode_dense(layout, &split)?;
     let (a, b) = (reference.as_f32().unwrap_or(&[]), ours.as_f32().unwrap_or(&[]));
     if reference.shape != ours.shape {

@@ -37,7 +37,7 @@ pub struct Emitted {
 
 /// The QDQ model for `model` under `plan`.
 pub fn emit(model: &ModelProto, plan: &Plan, o: &EmitOptions) -> Result<(ModelProto, Emitted)> {
-    let opset = model.opset_import.iter().find(|s| s.domain.is_empty()).map_or(0, |s| s.version);
+    let opset = crate::onnx::edit::default_opset(model).unwrap_or(0);
     if opset < 13 {
         bail!("quantization needs opset 13 or newer (per-channel DequantizeLinear); the model has opset {opset}; re-export it with opset_version=13 or later");
     }
