@@ -19,7 +19,7 @@ use crate::ir::{infer, Graph};
 use crate::metrics::tensor_error::compare;
 use crate::onnx::edit::expose_outputs;
 use crate::onnx::proto::ModelProto;
-use crate::pipeline::{counts, Pass, PassContext};
+use crate::pipeline::{counts, Clock, Pass, PassContext};
 use crate::prune::compensate::{self, Mode};
 use crate::prune::importance::{self, Criterion};
 use crate::prune::{apply, select, Scope, SelectOptions};
@@ -75,6 +75,7 @@ impl Pass for Prune {
         if !(0.0..1.0).contains(&o.ratio) {
             bail!("prune ratio {} must be in [0, 1)", o.ratio);
         }
+        let mut clock = Clock::default();
         let original = model.clone();
         let g = original.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
         let graph = Graph::build(g)?;
@@ -96,6 +97,7 @@ impl Pass for Prune {
             Criterion::BnGamma => importance::bn_gamma(&graph, &analysis),
             Criterion::Activation => (importance::activation(&analysis, &mean_abs(&original, &analysis, &feeds)?), 0),
         };
+        clock.lap("frames_and_importance");
         let plan = select(&analysis, &scores, &SelectOptions { ratio: o.ratio, round_to: o.round_to, scope: o.scope });
         let kept = apply::kept_positions(&analysis, &plan.keep)?;
         let opset = crate::onnx::edit::default_opset(model).unwrap_or(13);
@@ -103,6 +105,7 @@ impl Pass for Prune {
         let rewritten = apply::apply(pg, &analysis, &kept, opset)?;
         super::dce::eliminate(pg)?;
         check_outputs(&original, model)?;
+        clock.lap("rewrite");
 
         let (fit, held_out): (Vec<_>, Vec<_>) = feeds.iter().enumerate().partition(|(i, _)| feeds.len() < 4 || i % 4 != 3);
         // Compensation runs both models once per depth and frame: at 640x480 a few frames
@@ -113,6 +116,7 @@ impl Pass for Prune {
         let uncompensated = (o.compensate != Mode::None).then(|| model.clone());
         let comp = compensate::compensate(&original, model, &kept, &fit, &compensate::Options { mode: o.compensate, lambda: o.ridge, max_positions: MAX_REGRESSION_POSITIONS })?;
         super::dce::eliminate(super::graph_mut(model)?)?;
+        clock.lap("compensation");
 
         let mut errors = serde_json::Map::new();
         if !held_out.is_empty() {
@@ -121,6 +125,7 @@ impl Pass for Prune {
             }
             errors.insert(if o.compensate == Mode::None { "pruned" } else { "compensated" }.into(), output_errors(&original, model, &held_out)?);
         }
+        clock.lap("held_out_check");
         let (before, after) = (counts(&original)?, counts(model)?);
         let pruned_groups = plan.groups.iter().filter(|p| p.after < p.before).count();
         Ok(serde_json::json!({
@@ -140,6 +145,7 @@ impl Pass for Prune {
             "calibration": source,
             "held_out_frames": if errors.is_empty() { 0 } else { held_out.len() },
             "output_rel_l2": errors,
+            "seconds": clock.laps,
             "groups": plan.groups,
         }))
     }

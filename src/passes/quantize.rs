@@ -13,7 +13,7 @@
 use crate::calib_frames::image_feeds;
 use crate::ir::{infer, Graph};
 use crate::onnx::proto::ModelProto;
-use crate::pipeline::{Pass, PassContext};
+use crate::pipeline::{Clock, Pass, PassContext};
 use crate::quant::attribution::{self, worst_rel_l2, LayerError};
 use crate::quant::collect::{statistics, Statistics};
 use crate::quant::params::{degenerate_range, quantize_weights, weight_rounding_shift, ActivationType, QParams};
@@ -305,23 +305,4 @@ fn bias_shifts(g: &Graph, p: &Plan, means: &HashMap<String, Vec<f64>>, bits: u32
         out.insert(i, weight_rounding_shift(v, &w.shape, group, &q, mean));
     }
     Ok(out)
-}
-
-/// Seconds per phase, for the report (calibration time is a deployment concern).
-struct Clock {
-    last: std::time::Instant,
-    laps: std::collections::BTreeMap<&'static str, f64>,
-}
-
-impl Default for Clock {
-    fn default() -> Self {
-        Clock { last: std::time::Instant::now(), laps: Default::default() }
-    }
-}
-
-impl Clock {
-    fn lap(&mut self, phase: &'static str) {
-        self.laps.insert(phase, self.last.elapsed().as_secs_f64());
-        self.last = std::time::Instant::now();
-    }
 }

@@ -49,6 +49,9 @@ pub struct Options {
 /// Largest unrolled receptive field (C'·k·k) fitted on the output directly: its Gram matrix
 /// costs samples × features² per layer (a 3x3 conv keeping 32 input channels is 288).
 pub const MAX_UNROLLED: usize = 320;
+/// Floats of the original's values kept in memory at once (1 GiB): at 640x480 a batch then
+/// spans a few depths; a fixture's whole network fits in one.
+const ORIGINAL_VALUES_BUDGET: usize = 1 << 28;
 /// Samples per unrolled feature in an output fit, over all frames.
 const SAMPLES_PER_FEATURE: usize = 32;
 
@@ -63,6 +66,9 @@ pub struct Report {
     pub bias_corrected: usize,
     /// Convolutions whose regression was ill-posed: only their bias was corrected.
     pub not_refit: Vec<String>,
+    /// Seconds per phase: the original's runs, sessions of the pruned model, its runs,
+    /// accumulating statistics, solving.
+    pub seconds: std::collections::BTreeMap<&'static str, f64>,
 }
 
 /// Convolution geometry along one spatial axis.
@@ -242,50 +248,85 @@ pub fn compensate(original: &ModelProto, pruned: &mut ModelProto, kept: &HashMap
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     // Basic optimizations: a session per depth is built, and building is what costs here.
     let level = ort::session::builder::GraphOptimizationLevel::Level1;
-    let mut at = 0;
-    while at < jobs.len() {
-        let depth = jobs[at].0;
-        let end = jobs[at..].iter().position(|(d, _)| *d != depth).map_or(jobs.len(), |k| at + k);
-        let stage: Vec<&Job> = jobs[at..end].iter().map(|(_, j)| j).collect();
-        at = end;
-        report.depths += 1;
-        let xs: Vec<String> = stage.iter().map(|j| j.x.clone()).collect::<std::collections::BTreeSet<_>>().into_iter().collect();
-        let mut want_orig = xs.clone();
-        want_orig.extend(stage.iter().filter(|j| opts.mode == Mode::Lstsq && j.output_fit()).map(|j| j.y.clone()));
-        let mut orig_rt = OrtRuntime::with_options(&truncated(original, &want_orig)?, level, threads)?;
-        let mut pruned_rt = OrtRuntime::with_options(&truncated(pruned, &xs)?, level, threads)?;
-        let mut acc: Vec<Accumulator> = stage.iter().map(|j| Accumulator::new(j, opts.mode)).collect();
-        for f in feeds {
-            let (ro, rp) = (orig_rt.run(f)?, pruned_rt.run(f)?);
-            let get = |outs: &[(String, Tensor)], v: &str| -> Result<Vec<f32>> {
-                let t = &outs.iter().find(|(n, _)| n == v).ok_or_else(|| anyhow!("value {v} was not returned"))?.1;
-                t.as_f32().map(<[f32]>::to_vec).ok_or_else(|| anyhow!("value {v} is not float32"))
-            };
-            for (j, a) in stage.iter().zip(acc.iter_mut()) {
-                let (x, xp) = (get(&ro, &j.x)?, get(&rp, &j.x)?);
-                let y = if a.output.is_empty() { None } else { Some(get(&ro, &j.y)?) };
-                let samples = (SAMPLES_PER_FEATURE * j.unrolled()).div_ceil(feeds.len()).min(opts.max_positions);
-                a.add(j, &x, &xp, y.as_deref(), opts.max_positions, samples);
-            }
+    let mut stages: Vec<Vec<&Job>> = Vec::new();
+    for (i, (d, j)) in jobs.iter().enumerate() {
+        if i == 0 || jobs[i - 1].0 != *d {
+            stages.push(Vec::new());
         }
-        let g = pruned.graph.as_mut().expect("checked");
-        for (j, a) in stage.into_iter().zip(acc) {
-            let name = g.node[j.node].name.clone();
-            match a.finish(j, feeds.len(), opts.lambda, orig_g)? {
-                Some((w, b, how)) => {
-                    match how {
-                        Fit::Output => report.refit_output += 1,
-                        Fit::Input => report.refit_input += 1,
-                        Fit::Bias => {}
-                    }
-                    set_input_constant(g, j.node, 1, &w, "compensated");
-                    set_input_constant(g, j.node, 2, &b, "compensated");
-                    report.bias_corrected += 1;
-                }
-                None => report.not_refit.push(name),
-            }
-        }
+        stages.last_mut().expect("pushed").push(j);
     }
+    let original_values = |stage: &[&Job]| -> Vec<String> {
+        let mut v: Vec<String> = stage.iter().map(|j| j.x.clone()).collect();
+        v.extend(stage.iter().filter(|j| opts.mode == Mode::Lstsq && j.output_fit()).map(|j| j.y.clone()));
+        v
+    };
+    let floats = |values: &[String]| -> usize { values.iter().map(|v| inf.shape(v).map_or(0, |s| s.iter().product())).sum::<usize>() * feeds.len() };
+    let mut clock = crate::pipeline::Clock::default();
+    let mut at = 0;
+    while at < stages.len() {
+        // The original does not change: one run per frame serves every depth of a batch, as
+        // many depths as fit in ORIGINAL_VALUES_BUDGET (each depth's run of the pruned model
+        // still follows the corrections of the depths before it).
+        let mut batch_values: Vec<String> = original_values(&stages[at]);
+        let mut end = at + 1;
+        while end < stages.len() {
+            let mut more = batch_values.clone();
+            more.extend(original_values(&stages[end]));
+            if floats(&more) > ORIGINAL_VALUES_BUDGET {
+                break;
+            }
+            batch_values = more;
+            end += 1;
+        }
+        batch_values.sort();
+        batch_values.dedup();
+        let mut orig_rt = OrtRuntime::with_options(&truncated(original, &batch_values)?, level, threads)?;
+        let mut kept_values: Vec<HashMap<String, Vec<f32>>> = Vec::with_capacity(feeds.len());
+        for f in feeds {
+            kept_values.push(orig_rt.run(f)?.into_iter().map(|(n, t)| t.as_f32().map(|v| (n, v.to_vec())).ok_or_else(|| anyhow!("value is not float32"))).collect::<Result<_>>()?);
+        }
+        drop(orig_rt);
+        clock.lap("original_runs");
+        for stage in &stages[at..end] {
+            report.depths += 1;
+            let xs: Vec<String> = stage.iter().map(|j| j.x.clone()).collect::<std::collections::BTreeSet<_>>().into_iter().collect();
+            let mut pruned_rt = OrtRuntime::with_options(&truncated(pruned, &xs)?, level, threads)?;
+            let mut acc: Vec<Accumulator> = stage.iter().map(|j| Accumulator::new(j, opts.mode)).collect();
+            clock.lap("sessions");
+            for (f, ro) in feeds.iter().zip(&kept_values) {
+                let rp = pruned_rt.run(f)?;
+                clock.lap("pruned_runs");
+                let orig = |v: &str| ro.get(v).ok_or_else(|| anyhow!("value {v} was not returned"));
+                for (j, a) in stage.iter().zip(acc.iter_mut()) {
+                    let xp = rp.iter().find(|(n, _)| *n == j.x).and_then(|(_, t)| t.as_f32()).ok_or_else(|| anyhow!("value {} was not returned as float32", j.x))?;
+                    let y = if a.output.is_empty() { None } else { Some(orig(&j.y)?.as_slice()) };
+                    let samples = (SAMPLES_PER_FEATURE * j.unrolled()).div_ceil(feeds.len()).min(opts.max_positions);
+                    a.add(j, orig(&j.x)?, xp, y, opts.max_positions, samples);
+                }
+                clock.lap("statistics");
+            }
+            let g = pruned.graph.as_mut().expect("checked");
+            for (j, a) in stage.iter().zip(acc) {
+                let name = g.node[j.node].name.clone();
+                match a.finish(j, feeds.len(), opts.lambda, orig_g)? {
+                    Some((w, b, how)) => {
+                        match how {
+                            Fit::Output => report.refit_output += 1,
+                            Fit::Input => report.refit_input += 1,
+                            Fit::Bias => {}
+                        }
+                        set_input_constant(g, j.node, 1, &w, "compensated");
+                        set_input_constant(g, j.node, 2, &b, "compensated");
+                        report.bias_corrected += 1;
+                    }
+                    None => report.not_refit.push(name),
+                }
+            }
+            clock.lap("solve");
+        }
+        at = end;
+    }
+    report.seconds = clock.laps;
     Ok(report)
 }
 
