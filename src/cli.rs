@@ -174,6 +174,9 @@ pub enum Command {
         /// Timed runs per model and engine.
         #[arg(long, default_value_t = 10)]
         runs: usize,
+        /// Measure the FP16 variants on tract also where tract emulates f16 (x86_64: slow).
+        #[arg(long)]
+        tract_fp16: bool,
         #[arg(long)]
         json: bool,
     },
@@ -312,8 +315,8 @@ pub fn run(cli: Cli) -> Result<u8> {
                 return Ok(EXIT_GATE_FAILED);
             }
         }
-        Command::Bench { model, out, psf, calib, data, frames, runs, json } => {
-            let r = crate::bench::bench(&crate::bench::BenchRequest { model, out: out.clone(), psf, calib, data, frames, runs })?;
+        Command::Bench { model, out, psf, calib, data, frames, runs, tract_fp16, json } => {
+            let r = crate::bench::bench(&crate::bench::BenchRequest { model, out: out.clone(), psf, calib, data, frames, runs, tract_fp16 })?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);
             } else {

@@ -90,6 +90,25 @@ fn label(v: f64) -> String {
     }
 }
 
+/// Height of a label line (8-pixel glyphs and a little air).
+const LABEL_H: f64 = 11.0;
+/// Line offsets a label tries, nearest its point first.
+const LABEL_SHIFTS: [f64; 9] = [0.0, 1.0, -1.0, 2.0, -2.0, 3.0, -3.0, 4.0, -4.0];
+
+/// A label's box; `y` is its text baseline (glyphs sit above it).
+struct Rect {
+    x: f64,
+    y: f64,
+    w: f64,
+    h: f64,
+}
+
+impl Rect {
+    fn overlaps(&self, o: &Rect) -> bool {
+        self.x < o.x + o.w && o.x < self.x + self.w && self.y - self.h < o.y && o.y - o.h < self.y
+    }
+}
+
 fn layout(rows: &[Row], title: &str) -> Vec<Shape> {
     let mut s = vec![Shape::Text { at: (WIDTH as f64 / 2.0, 28.0), text: format!("pdi-compile bench: {title}"), color: BLACK, scale: 2, centered: true }];
     let x = Axis::new(rows.iter().map(|r| r.latency_ms), true, 0.08);
@@ -123,6 +142,7 @@ fn layout(rows: &[Row], title: &str) -> Vec<Shape> {
             s.push(Shape::Line { from: w[0], to: (w[1].0, w[0].1), color: RED, width: 2.0 });
             s.push(Shape::Line { from: (w[1].0, w[0].1), to: w[1], color: RED, width: 2.0 });
         }
+        let mut placed: Vec<Rect> = Vec::new();
         for r in rows {
             let Some((v, pareto)) = pick(r) else { continue };
             let at = (px(r.latency_ms), py(v));
@@ -131,10 +151,14 @@ fn layout(rows: &[Row], title: &str) -> Vec<Shape> {
             }
             s.push(Shape::Marker { at, radius: 5.0, color: color_of(&r.variant), square: r.engine == "tract", filled: !r.variant.starts_with("pruned") });
             let text = format!("{}/{}", r.variant, r.engine);
-            // Labels go right of their point unless that runs past the panel.
+            // Labels go right of their point unless that runs past the panel, and move down
+            // or up a line at a time off labels already placed (points often cluster).
             let width = 8.0 * text.len() as f64;
             let x = if at.0 + 9.0 + width > left + PANEL_W { at.0 - 9.0 - width } else { at.0 + 9.0 };
-            s.push(Shape::Text { at: (x, at.1 - 6.0), text, color: color_of(&r.variant), scale: 1, centered: false });
+            let free = |y: f64| !placed.iter().any(|p| p.overlaps(&Rect { x, y, w: width, h: LABEL_H }));
+            let y = LABEL_SHIFTS.iter().map(|k| at.1 - 6.0 + k * LABEL_H).find(|&y| free(y)).unwrap_or(at.1 - 6.0);
+            placed.push(Rect { x, y, w: width, h: LABEL_H });
+            s.push(Shape::Text { at: (x, y), text, color: color_of(&r.variant), scale: 1, centered: false });
         }
     }
     let legend = "blue f32, green fp16, orange int8, black original; filled unpruned, hollow pruned; circle ORT, square tract; red: Pareto front";
