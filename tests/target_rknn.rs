@@ -131,3 +131,31 @@ fn rknn_convert_builds_and_its_simulator_agrees_with_ort() {
     assert_eq!(r.code, 1, "{}", r.stdout);
     assert!(r.stdout.contains("FAIL") && r.stdout.contains("cosine"), "{}", r.stdout);
 }
+
+/// rknn-hybrid's FP16 layers travel through rknn.yaml to the toolkit's hybrid quantization:
+/// the build log shows the float16 spans, and the simulator still agrees with ORT.
+#[test]
+fn rknn_hybrid_layers_reach_the_toolkit() {
+    let dir = tempfile::tempdir().unwrap();
+    let recipe = dir.path().join("hybrid.yaml");
+    let base = std::fs::read_to_string(repo().join("passes/detect-rknn.yaml")).unwrap();
+    std::fs::write(&recipe, format!("{base}  - rknn-hybrid: {{error_budget: 0.02, max_layers: 4}}\n")).unwrap();
+    let out = dir.path().join("rknn");
+    let r = compile("models/trained/pdinet_v5_tiny_trained.onnx", recipe.to_str().unwrap(), &out, &["--target", "rknn"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let config: serde_json::Value = yaml_serde::from_str(&std::fs::read_to_string(out.join("rknn.yaml")).unwrap()).unwrap();
+    let layers = config["quantization"]["fp16_layers"].as_array().unwrap();
+    assert!(!layers.is_empty(), "the simulated INT8 error is above 0.02 on this model, so layers are proposed");
+    let model = load(&out.join("model.onnx"));
+    for l in layers {
+        let node = model.graph.as_ref().unwrap().node.iter().find(|n| n.name == l["node"].as_str().unwrap()).unwrap();
+        assert_eq!((node.input[0].as_str(), node.output[0].as_str()), (l["input"].as_str().unwrap(), l["output"].as_str().unwrap()));
+    }
+    let r = cli(&["rknn-convert", out.to_str().unwrap(), "--json"]);
+    assert_eq!(r.code, 0, "{}\n{}", r.stdout, r.stderr);
+    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    assert_eq!(report["fp16_layers"].as_array().unwrap().len(), layers.len());
+    let log = std::fs::read_to_string(out.join("rknn_build.log")).unwrap();
+    assert!(log.contains("dtype: float16"), "the toolkit built float16 spans");
+    assert!(!out.join("model.quantization.cfg").exists(), "hybrid intermediates stay out of the artifact");
+}

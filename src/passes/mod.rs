@@ -10,6 +10,7 @@ pub mod fold_psf_gates;
 pub mod prune;
 pub mod quantize;
 pub mod resize_to_deconv;
+pub mod rknn_hybrid;
 pub mod rknn_legalize;
 pub mod strip_recon;
 pub mod to_fp16;
@@ -18,7 +19,7 @@ use crate::pipeline::{Pass, PassSpec};
 use anyhow::{anyhow, bail, Result};
 
 /// Every pass this build knows, by the name recipes use.
-pub const KNOWN: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "prune", "quantize", "fp16", "rknn-legalize"];
+pub const KNOWN: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "prune", "quantize", "fp16", "rknn-legalize", "rknn-hybrid"];
 
 pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
     Ok(match spec.name.as_str() {
@@ -34,6 +35,7 @@ pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
         "fp16" => Box::new(to_fp16::ToFp16 { options: options(spec)? }),
         "quantize" => Box::new(quantize::Quantize { options: options(spec)? }),
         "rknn-legalize" => Box::new(rknn_legalize::RknnLegalize { options: options(spec)? }),
+        "rknn-hybrid" => Box::new(rknn_hybrid::RknnHybrid { options: options(spec)? }),
         other => bail!("unknown pass '{other}' in the pipeline (known passes: {})", KNOWN.join(", ")),
     })
 }

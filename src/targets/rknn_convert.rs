@@ -71,6 +71,8 @@ pub struct ConvertReport {
     pub groups: Vec<Agreement>,
     pub npu_layers: usize,
     pub cpu_layers: Vec<String>,
+    /// Layers built in FP16 (rknn.yaml's fp16_layers, by node name).
+    pub fp16_layers: Vec<String>,
     /// Detections after post-processing (conf 0.25, NMS 0.45): ORT's, the simulator's, and
     /// how many of ORT's the simulator found (same class, IoU ≥ 0.5).
     pub detections_ort: usize,
@@ -107,7 +109,7 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
         "config": config,
         "frames": frame_paths,
         "out_dir": work.path(),
-        "rknn": rknn_tmp,
+        "rknn": std::path::absolute(&rknn_tmp)?,
         "result": result_path,
     });
     let job_path = work.path().join("job.json");
@@ -190,6 +192,7 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
         groups,
         npu_layers,
         cpu_layers,
+        fp16_layers: config.quantization.fp16_layers.iter().map(|l| l.node.clone()).collect(),
         detections_ort: n_ort,
         detections_rknn: n_rknn,
         detections_matched: matched,
@@ -293,7 +296,7 @@ impl ConvertReport {
         for a in self.outputs.iter().chain(&self.groups) {
             s += &format!("  {:<18} {:>9.5} {:>10.3e} {:>10.3e}\n", a.name, a.error.cosine, a.error.rel_l2, a.error.max_abs);
         }
-        s += &format!("  layers: {} on the NPU, {} on the CPU\n", self.npu_layers, self.cpu_layers.len());
+        s += &format!("  layers: {} on the NPU ({} kept in FP16), {} on the CPU\n", self.npu_layers, self.fp16_layers.len(), self.cpu_layers.len());
         s += &format!("  detections (conf {CONF}): ORT {}, simulator {}, matched {}\n", self.detections_ort, self.detections_rknn, self.detections_matched);
         s += &if self.passed { format!("  PASS (every cosine ≥ {}, nothing on the CPU)\n", self.min_cosine) } else { format!("  FAIL: {}\n", self.failures.join("; ")) };
         s
