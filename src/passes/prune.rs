@@ -7,16 +7,18 @@
 //! compensation use them; magnitude importance without compensation needs none).
 //! Guarantees: outputs keep their names and shapes; the image input, the detection head's
 //! output convolutions, graph outputs and `ignore` keep every channel; a group the channel
-//! analysis cannot see through is left whole and named, never pruned wrongly.
+//! analysis cannot see through is left whole and named, never pruned wrongly; compensation
+//! is kept only when it lowers the worst output group's rel L2 (boxes, objectness, classes
+//! apart) on held-out calibration frames, otherwise the plain pruned weights are emitted.
 //! Reports: every group with channels before/after (and why it was kept or how it was
-//! rounded), MACs and parameters before/after, compensation work, and the outputs' rel L2
-//! against the unpruned model on held-out calibration frames, without and with
-//! compensation.
+//! rounded), MACs and parameters before/after, compensation work (and whether it was kept),
+//! and the rel L2 per output and channel group against the unpruned model on held-out
+//! calibration frames, without and with compensation.
 
 use crate::analysis::channels::analyse;
 use crate::calib_frames::image_feeds;
 use crate::ir::{infer, Graph};
-use crate::metrics::tensor_error::compare;
+use crate::quant::attribution::{output_errors, worst_rel_l2, OutputError};
 use crate::onnx::edit::expose_outputs;
 use crate::onnx::proto::ModelProto;
 use crate::pipeline::{counts, Clock, Pass, PassContext};
@@ -119,11 +121,23 @@ impl Pass for Prune {
         clock.lap("compensation");
 
         let mut errors = serde_json::Map::new();
+        let mut compensation_kept = o.compensate != Mode::None;
         if !held_out.is_empty() {
-            if let Some(u) = &uncompensated {
-                errors.insert("uncompensated".into(), output_errors(&original, u, &held_out)?);
+            let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+            let result = output_errors(&original, model, &held_out, threads)?;
+            if let Some(u) = uncompensated {
+                let before = output_errors(&original, &u, &held_out, threads)?;
+                // Compensation stays only where it helps on frames it never saw: the worst
+                // output group (boxes, objectness, classes judged apart) must improve.
+                compensation_kept = worst_rel_l2(&result) < worst_rel_l2(&before);
+                if !compensation_kept {
+                    *model = u;
+                }
+                errors.insert("uncompensated".into(), by_name(&before));
+                errors.insert("compensated".into(), by_name(&result));
+            } else {
+                errors.insert("pruned".into(), by_name(&result));
             }
-            errors.insert(if o.compensate == Mode::None { "pruned" } else { "compensated" }.into(), output_errors(&original, model, &held_out)?);
         }
         clock.lap("held_out_check");
         let (before, after) = (counts(&original)?, counts(model)?);
@@ -141,7 +155,7 @@ impl Pass for Prune {
             "macs_ratio": after.macs as f64 / before.macs.max(1) as f64,
             "params_ratio": after.params as f64 / before.params.max(1) as f64,
             "tensors_rewritten": rewritten,
-            "compensation": { "mode": o.compensate, "frames_fit": fit.len(), "work": comp },
+            "compensation": { "mode": o.compensate, "kept": compensation_kept, "frames_fit": fit.len(), "work": comp },
             "calibration": source,
             "held_out_frames": if errors.is_empty() { 0 } else { held_out.len() },
             "output_rel_l2": errors,
@@ -185,20 +199,7 @@ fn check_outputs(original: &ModelProto, pruned: &ModelProto) -> Result<()> {
     Ok(())
 }
 
-/// Per output rel L2 of `candidate` against `reference` over `feeds`.
-fn output_errors(reference: &ModelProto, candidate: &ModelProto, feeds: &[Vec<(String, Tensor)>]) -> Result<serde_json::Value> {
-    let mut r = OrtRuntime::new(reference)?;
-    let mut c = OrtRuntime::new(candidate)?;
-    let mut acc: Vec<(String, Vec<f64>, Vec<f64>)> = Vec::new();
-    for f in feeds {
-        let (ro, co) = (r.run(f)?, c.run(f)?);
-        for (k, ((name, a), (_, b))) in ro.iter().zip(&co).enumerate() {
-            if acc.len() <= k {
-                acc.push((name.clone(), Vec::new(), Vec::new()));
-            }
-            acc[k].1.extend(a.data.to_f64());
-            acc[k].2.extend(b.data.to_f64());
-        }
-    }
-    Ok(acc.into_iter().map(|(n, a, b)| (n, serde_json::json!(compare(&a, &b).rel_l2))).collect::<serde_json::Map<_, _>>().into())
+/// Rel L2 per output, and per channel group of a detection output as `output/group`.
+fn by_name(errors: &[OutputError]) -> serde_json::Value {
+    errors.iter().map(|e| (e.group.map_or(e.output.clone(), |g| format!("{}/{g}", e.output)), serde_json::json!(e.error.rel_l2))).collect::<serde_json::Map<_, _>>().into()
 }

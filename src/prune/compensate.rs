@@ -10,12 +10,15 @@
 //! weights: over the unrolled k×k×C' receptive field of X' to Y when that is at most
 //! [`MAX_UNROLLED`] features (exact least squares on the layer's output, intercept as the
 //! bias), otherwise per pixel from X' to X (W' = W·M per tap, for each layer's wide 3x3
-//! convolutions at full width). `bias` (and `lstsq` after an input-space refit) sets the
+//! convolutions at full width). The ridge strength (1x to 1000x the configured one, or no
+//! refit at all) is chosen per regression on held-out check frames. Samples are positions
+//! drawn at random from strata, never a regular stride. `bias` (and `lstsq` after an
+//! input-space refit) sets the
 //! bias so the output's per-channel mean equals the original's:
 //! b' = b + Σ W·E[X at tap] − Σ W'·E[X' at tap], with tap means over the zero-padded
 //! input taken exactly (borders matter at 8x6 strides).
 
-use super::ridge::Moments;
+use super::ridge::{spread_positions, Moments};
 use crate::ir::{infer, Graph};
 use crate::onnx::attr;
 use crate::onnx::edit::{expose_outputs, initializer, set_input_constant};
@@ -66,6 +69,9 @@ pub struct Report {
     pub bias_corrected: usize,
     /// Convolutions whose regression was ill-posed: only their bias was corrected.
     pub not_refit: Vec<String>,
+    /// Per regression, what the held-out frame chose: a ridge strength (× the configured
+    /// one), or `pruned weights` when no refit beat them there.
+    pub choices: std::collections::BTreeMap<String, usize>,
     /// Seconds per phase: the original's runs, sessions of the pruned model, its runs,
     /// accumulating statistics, solving.
     pub seconds: std::collections::BTreeMap<&'static str, f64>,
@@ -291,7 +297,7 @@ pub fn compensate(original: &ModelProto, pruned: &mut ModelProto, kept: &HashMap
             report.depths += 1;
             let xs: Vec<String> = stage.iter().map(|j| j.x.clone()).collect::<std::collections::BTreeSet<_>>().into_iter().collect();
             let mut pruned_rt = OrtRuntime::with_options(&truncated(pruned, &xs)?, level, threads)?;
-            let mut acc: Vec<Accumulator> = stage.iter().map(|j| Accumulator::new(j, opts.mode)).collect();
+            let mut acc: Vec<Accumulator> = stage.iter().map(|j| Accumulator::new(j, opts.mode, feeds.len())).collect();
             clock.lap("sessions");
             for (f, ro) in feeds.iter().zip(&kept_values) {
                 let rp = pruned_rt.run(f)?;
@@ -308,7 +314,7 @@ pub fn compensate(original: &ModelProto, pruned: &mut ModelProto, kept: &HashMap
             let g = pruned.graph.as_mut().expect("checked");
             for (j, a) in stage.iter().zip(acc) {
                 let name = g.node[j.node].name.clone();
-                match a.finish(j, feeds.len(), opts.lambda, orig_g)? {
+                match a.finish(j, feeds.len(), opts.lambda, orig_g, &mut report.choices)? {
                     Some((w, b, how)) => {
                         match how {
                             Fit::Output => report.refit_output += 1,
@@ -351,14 +357,62 @@ struct Accumulator {
     /// Tap means of X (original) and X' (pruned), summed over frames: [C][taps].
     taps_o: Vec<f64>,
     taps_p: Vec<f64>,
-    /// Output fit: one regression per segment of the pruned layer (unrolled X' -> Y rows).
+    /// Output fit: one regression per segment of the pruned layer (unrolled X' -> Y rows),
+    /// on the fitting frames and on the check frames.
     output: Vec<Moments>,
-    /// Input fit: X' -> X per pixel (dense layers too wide to unroll).
-    input: Option<Moments>,
+    output_check: Vec<Moments>,
+    /// Input fit: X' -> X per pixel (dense layers too wide to unroll), fitting and check.
+    input: Option<(Moments, Moments)>,
+    /// Frames added so far (each frame samples other positions), of `frames`.
+    frames_seen: u64,
+    frames: usize,
+}
+
+/// Ridge strengths tried, as multiples of the configured one; the check frames pick.
+const RIDGE_MULTIPLIERS: [f64; 4] = [1.0, 10.0, 100.0, 1000.0];
+
+/// Frame `k` of `frames` is held out to choose the ridge strength: every 4th, or the last
+/// of 2 or 3. A refit must beat the pruned weights on frames it never saw: where pruning
+/// left features with little relation to the original's (an untrained full-size network),
+/// an unchecked refit fits noise and makes the output worse.
+fn is_check_frame(k: u64, frames: usize) -> bool {
+    frames >= 2 && (k % 4 == 3 || (frames < 4 && k as usize == frames - 1))
+}
+
+/// The refit `fit` (with `prior` as the ridge target) whose residual on `check` is least,
+/// among the ridge strengths and `prior` itself, re-solved on all samples; with its label.
+fn choose(fit: &Moments, check: &Moments, lambda: f64, prior: &[f64]) -> Option<(Vec<f64>, Vec<f64>, String)> {
+    if check.n < 1.0 {
+        let (mm, c) = fit.solve(lambda, Some(prior))?;
+        return Some((mm, c, "1x".into()));
+    }
+    let mut best: Option<(f64, Option<f64>)> = None;
+    for k in RIDGE_MULTIPLIERS.into_iter().map(Some).chain([None]) {
+        let fitted = match k {
+            Some(k) => fit.solve(lambda * k, Some(prior)),
+            None => Some(fit.intercept_only(prior)),
+        };
+        if let Some((mm, c)) = fitted {
+            let r = check.residual(&mm, &c);
+            if r.is_finite() && best.is_none_or(|(b, _)| r < b) {
+                best = Some((r, k));
+            }
+        }
+    }
+    let (_, k) = best?;
+    let mut all = fit.clone();
+    all.merge(check);
+    match k {
+        Some(k) => all.solve(lambda * k, Some(prior)).map(|(mm, c)| (mm, c, format!("{k}x"))),
+        None => Some({
+            let (mm, c) = all.intercept_only(prior);
+            (mm, c, "pruned weights".into())
+        }),
+    }
 }
 
 impl Accumulator {
-    fn new(j: &Job, mode: Mode) -> Accumulator {
+    fn new(j: &Job, mode: Mode, frames: usize) -> Accumulator {
         let (cin_o, cin_p) = (j.w_orig.shape[1] * j.group_o, j.xk.len());
         let rows = j.ys.len() / j.group_p.max(1);
         let lstsq = mode == Mode::Lstsq;
@@ -366,7 +420,10 @@ impl Accumulator {
             taps_o: vec![0.0; cin_o * j.taps()],
             taps_p: vec![0.0; cin_p * j.taps()],
             output: if lstsq && j.output_fit() { (0..j.group_p).map(|_| Moments::new(j.unrolled(), rows)).collect() } else { Vec::new() },
-            input: (lstsq && !j.output_fit() && j.group_o == 1 && j.group_p == 1).then(|| Moments::new(cin_p, cin_o)),
+            output_check: if lstsq && j.output_fit() { (0..j.group_p).map(|_| Moments::new(j.unrolled(), rows)).collect() } else { Vec::new() },
+            input: (lstsq && !j.output_fit() && j.group_o == 1 && j.group_p == 1).then(|| (Moments::new(cin_p, cin_o), Moments::new(cin_p, cin_o))),
+            frames_seen: 0,
+            frames,
         }
     }
 
@@ -383,15 +440,18 @@ impl Accumulator {
         }
         let [gy, gx] = j.geo;
         let plane = gy.input * gx.input;
-        if let Some(m) = self.input.as_mut() {
-            m.add_planes(xp, x, plane, plane.div_ceil(max_positions.max(1)));
+        let check = is_check_frame(self.frames_seen, self.frames);
+        if let Some((fit, held)) = self.input.as_mut() {
+            let m = if check { held } else { fit };
+            m.add_planes(xp, x, plane, &spread_positions(plane, max_positions, self.frames_seen));
         }
         if let Some(y) = y {
             let outs = gy.output * gx.output;
-            let picks: Vec<usize> = (0..outs).step_by(outs.div_ceil(output_samples.max(1)).max(1)).collect();
+            let picks = spread_positions(outs, output_samples.max(1), self.frames_seen);
             let cpg = j.w_new.shape[1];
             let rows = j.ys.len() / j.group_p.max(1);
-            for (s, m) in self.output.iter_mut().enumerate() {
+            let moments = if check { &mut self.output_check } else { &mut self.output };
+            for (s, m) in moments.iter_mut().enumerate() {
                 let mut cols: Vec<Vec<f64>> = Vec::with_capacity(cpg * j.taps());
                 for c in 0..cpg {
                     let p = &xp[(s * cpg + c) * plane..(s * cpg + c + 1) * plane];
@@ -411,10 +471,11 @@ impl Accumulator {
                 m.add_columns(&cols, &targets);
             }
         }
+        self.frames_seen += 1;
     }
 
     /// New (weight, bias) for the pruned layer, or None when its fit was ill-posed.
-    fn finish(self, j: &Job, frames: usize, lambda: f64, orig_g: &GraphProto) -> Result<Option<(Tensor, Tensor, Fit)>> {
+    fn finish(self, j: &Job, frames: usize, lambda: f64, orig_g: &GraphProto, choices: &mut std::collections::BTreeMap<String, usize>) -> Result<Option<(Tensor, Tensor, Fit)>> {
         let f = frames.max(1) as f64;
         let ntaps = j.taps();
         let mut weight = j.w_new.as_f32().expect("f32 checked").to_vec();
@@ -430,9 +491,10 @@ impl Accumulator {
             let rows = j.ys.len() / j.group_p.max(1);
             let d = j.unrolled();
             let mut bias = vec![0.0f32; j.ys.len()];
-            for (s, m) in self.output.iter().enumerate() {
+            for (s, (m, held)) in self.output.iter().zip(&self.output_check).enumerate() {
                 let prior: Vec<f64> = weight[s * rows * d..(s + 1) * rows * d].iter().map(|&v| v as f64).collect();
-                let Some((mm, c)) = m.solve(lambda, Some(&prior)) else { return Ok(None) };
+                let Some((mm, c, choice)) = choose(m, held, lambda, &prior) else { return Ok(None) };
+                *choices.entry(choice).or_default() += 1;
                 for (k, v) in mm.iter().enumerate() {
                     weight[s * rows * d + k] = *v as f32;
                 }
@@ -446,13 +508,14 @@ impl Accumulator {
         let wo = rows_o.as_f32().expect("f32 checked");
         let (cin_o, cin_p) = (j.w_orig.shape[1], j.w_new.shape[1]);
         let mut how = Fit::Bias;
-        if let Some(m) = &self.input {
+        if let Some((m, held)) = &self.input {
             // Prior: the identity on the kept channels (X'[jj] stands for X[xk[jj]]).
             let mut prior = vec![0.0; cin_o * cin_p];
             for (jj, &c) in j.xk.iter().enumerate() {
                 prior[c * cin_p + jj] = 1.0;
             }
-            let Some((mm, _)) = m.solve(lambda, Some(&prior)) else { return Ok(None) };
+            let Some((mm, _, choice)) = choose(m, held, lambda, &prior) else { return Ok(None) };
+            *choices.entry(choice).or_default() += 1;
             for r in 0..j.ys.len() {
                 for jj in 0..cin_p {
                     for t in 0..ntaps {
