@@ -13,8 +13,7 @@
 //! convolutions at full width). The ridge strength (1x to 1000x the configured one, or no
 //! refit at all) is chosen per regression on held-out check frames. Samples are positions
 //! drawn at random from strata, never a regular stride. `bias` (and `lstsq` after an
-//! input-space refit) sets the
-//! bias so the output's per-channel mean equals the original's:
+//! input-space refit) sets the bias so the output's per-channel mean equals the original's:
 //! b' = b + Σ W·E[X at tap] − Σ W'·E[X' at tap], with tap means over the zero-padded
 //! input taken exactly (borders matter at 8x6 strides).
 
