@@ -139,7 +139,7 @@ pub enum Command {
         /// Thresholds (YAML, see passes/gate.yaml); without one, nothing can fail.
         #[arg(long)]
         gate: Option<PathBuf>,
-        /// Timed runs per model.
+        /// Timed runs per model (0: accuracy only, no latency).
         #[arg(long, default_value_t = 20)]
         runs: usize,
         /// Skip the tract run.

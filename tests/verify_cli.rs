@@ -84,6 +84,15 @@ fn bad_verify_input_exits_2() {
     let r = cli(&["verify", "--reference", reference.to_str().unwrap(), "--candidate", candidate.to_str().unwrap(), "--psf", "calib/radial_6x8.npy", "--gate", gate.to_str().unwrap()]);
     assert_eq!(r.code, 2);
     assert!(r.stderr.contains("max_typo"), "{}", r.stderr);
+    // --runs 0 measures accuracy only: a gate on latency cannot be checked then.
+    std::fs::write(&gate, "max_rel_l2: 1e-5\nmax_latency_ratio: 1.1\n").unwrap();
+    let r = cli(&["verify", "--reference", reference.to_str().unwrap(), "--candidate", candidate.to_str().unwrap(), "--psf", "calib/radial_6x8.npy", "--gate", gate.to_str().unwrap(), "--runs", "0"]);
+    assert_eq!(r.code, 2);
+    assert!(r.stderr.contains("--runs"), "{}", r.stderr);
+    let r = cli(&["verify", "--reference", reference.to_str().unwrap(), "--candidate", candidate.to_str().unwrap(), "--psf", "calib/radial_6x8.npy", "--random", "1", "--runs", "0", "--json"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let j: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    assert!(j["latency"].as_array().unwrap().is_empty() && j["latency_ratio"].is_null(), "{j}");
 }
 
 /// Frames from a folder (16-bit PNG) with YOLO labels: both models are scored against them.

@@ -5,7 +5,8 @@
 //! and the lossless passes run once), each on ONNX Runtime and tract, beside the original on
 //! ONNX Runtime. Every variant is verified against the original on the same frames: rel L2
 //! of the detection outputs and mAP@0.5:0.95 agreement (the original's detections as
-//! ground truth), latency interleaved with the original's in the same run.
+//! ground truth); then latency, the original and every variant on every engine interleaved
+//! in one loop, so that all ratios come from the same run.
 //!
 //! DIR/bench.json, DIR/bench.md   the table (Pareto-optimal rows marked)
 //! DIR/bench.svg, DIR/bench.png   latency against rel L2 and against mAP agreement
@@ -22,6 +23,8 @@ pub mod plot;
 use crate::compile::{compile, CompileRequest};
 use crate::fsutil::{ensure_dir, write_atomic};
 use crate::pipeline::{PassContext, Recipe};
+use crate::runtime::{self, Engine, Runtime};
+use crate::tensor::Tensor;
 use crate::verify::{verify, VerifyRequest};
 use anyhow::{anyhow, Result};
 use serde::Serialize;
@@ -121,57 +124,47 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
         compile_seconds.push((name.to_string(), c.elapsed().as_secs_f64()));
     }
 
+    // Accuracy per variant against the original; latency afterwards, every model and
+    // engine timed in one interleaved loop so that all ratios come from the same run.
     let mut rows = Vec::new();
-    let mut original_ms = Vec::new();
     let mut not_measured = Vec::new();
+    let mut timed: Vec<(String, Engine, PathBuf)> = Vec::new();
     for (name, _, _) in &stages {
         let tract = !name.ends_with("fp16") || TRACT_NATIVE_F16 || req.tract_fp16;
         if !tract {
             not_measured.push(format!("{name} on tract: tract emulates f16 arithmetic on {} (pass --tract-fp16 to measure it anyway)", std::env::consts::ARCH));
         }
-        eprintln!("bench: measuring {name} on ONNX Runtime{}", if tract { " and tract" } else { "" });
+        eprintln!("bench: checking {name} on ONNX Runtime{} against the original", if tract { " and tract" } else { "" });
+        let model = variant_dir(name).join("model.onnx");
         let r = verify(&VerifyRequest {
             reference: req.model.clone(),
-            candidate: variant_dir(name).join("model.onnx"),
+            candidate: model.clone(),
             data: req.data.clone(),
             random: req.frames,
             psf: req.psf.clone(),
             gate: None,
-            latency_runs: req.runs,
+            latency_runs: 0,
             tract,
             seed: 0,
         })
         .map_err(|e| anyhow!("measuring the {name} variant: {e:#}"))?;
-        let reference_ms = r.latency[0].median_ms;
-        original_ms.push(reference_ms);
         let worst = |f: &dyn Fn(&crate::verify::OutputReport) -> Option<f64>| r.outputs.iter().filter_map(f).fold(0.0, f64::max);
         let det = r.detection.as_ref();
-        rows.push(Row {
-            variant: name.to_string(),
-            engine: "ort".into(),
-            latency_ms: r.latency[1].median_ms,
-            ratio_vs_original: r.latency[1].median_ms / reference_ms,
-            rel_l2: worst(&|o| Some(o.ort.rel_l2)),
-            map_agreement: det.map(|d| d.agreement.map50_95),
-            pareto_rel_l2: false,
-            pareto_map: false,
-        });
-        if let Some(l) = r.latency.get(2) {
-            rows.push(Row {
-                variant: name.to_string(),
-                engine: "tract".into(),
-                latency_ms: l.median_ms,
-                ratio_vs_original: l.median_ms / reference_ms,
-                rel_l2: worst(&|o| o.tract_vs_reference.map(|e| e.rel_l2)),
-                map_agreement: det.and_then(|d| d.agreement_tract.as_ref()).map(|m| m.map50_95),
-                pareto_rel_l2: false,
-                pareto_map: false,
-            });
+        rows.push(Row::new(name, "ort", worst(&|o| Some(o.ort.rel_l2)), det.map(|d| d.agreement.map50_95)));
+        timed.push((name.to_string(), Engine::Ort, model.clone()));
+        if tract {
+            rows.push(Row::new(name, "tract", worst(&|o| o.tract_vs_reference.map(|e| e.rel_l2)), det.and_then(|d| d.agreement_tract.as_ref()).map(|m| m.map50_95)));
+            timed.push((name.to_string(), Engine::Tract, model));
         }
     }
-    original_ms.sort_by(f64::total_cmp);
-    let original = original_ms[original_ms.len() / 2];
-    rows.insert(0, Row { variant: "original".into(), engine: "ort".into(), latency_ms: original, ratio_vs_original: 1.0, rel_l2: 0.0, map_agreement: Some(1.0), pareto_rel_l2: false, pareto_map: false });
+    eprintln!("bench: timing the original and {} variant/engine pairs together, {} runs each", timed.len(), req.runs);
+    let latency = time_together(req, &timed)?;
+    let original = latency[0];
+    rows.insert(0, Row::new("original", "ort", 0.0, Some(1.0)));
+    for (row, ms) in rows.iter_mut().zip(&latency) {
+        row.latency_ms = *ms;
+        row.ratio_vs_original = ms / original;
+    }
     mark_pareto(&mut rows);
 
     let report = BenchReport {
@@ -193,6 +186,38 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
     Ok(report)
 }
 
+impl Row {
+    fn new(variant: &str, engine: &str, rel_l2: f64, map_agreement: Option<f64>) -> Row {
+        Row { variant: variant.into(), engine: engine.into(), latency_ms: 0.0, ratio_vs_original: 0.0, rel_l2, map_agreement, pareto_rel_l2: false, pareto_map: false }
+    }
+}
+
+/// Median milliseconds of the original on ORT, then of each of `timed`, all interleaved in
+/// one loop on the same frame.
+fn time_together(req: &BenchRequest, timed: &[(String, Engine, PathBuf)]) -> Result<Vec<f64>> {
+    let reference = crate::verify::side(&req.model, "original")?;
+    let (h, w) = reference.shape;
+    let frame = match &req.data {
+        Some(d) => crate::frames::load_folder(d, h, w)?.swap_remove(0),
+        None => crate::frames::synthetic(1, h, w, 0).swap_remove(0),
+    };
+    let psf = req.psf.as_deref().map(crate::verify::blur_input).transpose()?;
+    let mut loaded: Vec<(String, Box<dyn Runtime>, Vec<(String, Tensor)>)> = Vec::new();
+    let inputs = crate::verify::feeds(&reference, &frame, psf.as_ref())?;
+    loaded.push(("original/ort".into(), runtime::load(Engine::Ort, &reference.model, &inputs)?, inputs));
+    for (name, engine, path) in timed {
+        let side = crate::verify::side(path, name)?;
+        let inputs = crate::verify::feeds(&side, &frame, psf.as_ref())?;
+        loaded.push((format!("{name}/{engine:?}"), runtime::load(*engine, &side.model, &inputs)?, inputs));
+    }
+    let mut models: Vec<(String, &mut dyn Runtime, Vec<(String, Tensor)>)> = Vec::new();
+    for (n, rt, i) in loaded.iter_mut() {
+        models.push((n.clone(), rt.as_mut(), std::mem::take(i)));
+    }
+    let latency = crate::verify::latency::interleaved(&mut models, req.runs)?;
+    Ok(latency.into_iter().map(|l| l.median_ms).collect())
+}
+
 /// A row is Pareto-optimal when no other row is at least as fast and at least as accurate,
 /// and strictly better in one of the two.
 fn mark_pareto(rows: &mut [Row]) {
@@ -206,7 +231,7 @@ fn mark_pareto(rows: &mut [Row]) {
 
 impl BenchReport {
     pub fn markdown(&self) -> String {
-        let mut s = format!("# pdi-compile bench: {}\n\n{} ; median of {} runs per model, interleaved with the original's.\n`*` marks the Pareto front (latency against rel L2 / against mAP agreement).\n\n", self.model, self.frames, self.runs);
+        let mut s = format!("# pdi-compile bench: {}\n\n{} ; median of {} runs per model, all models interleaved in one loop.\n`*` marks the Pareto front (latency against rel L2 / against mAP agreement).\n\n", self.model, self.frames, self.runs);
         s += "| variant | engine | latency ms | vs original | rel L2 | mAP agreement |\n|---|---|---:|---:|---:|---:|\n";
         for r in &self.rows {
             let map = r.map_agreement.map_or("-".to_string(), |m| format!("{m:.4}{}", if r.pareto_map { " *" } else { "" }));

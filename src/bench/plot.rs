@@ -142,7 +142,8 @@ fn layout(rows: &[Row], title: &str) -> Vec<Shape> {
             s.push(Shape::Line { from: w[0], to: (w[1].0, w[0].1), color: RED, width: 2.0 });
             s.push(Shape::Line { from: (w[1].0, w[0].1), to: w[1], color: RED, width: 2.0 });
         }
-        let mut placed: Vec<Rect> = Vec::new();
+        // Labels avoid the markers (Pareto rings included) and each other.
+        let mut placed: Vec<Rect> = rows.iter().filter_map(|r| pick(r).map(|(v, _)| (px(r.latency_ms), py(v)))).map(|(x, y)| Rect { x: x - 9.0, y: y + 9.0, w: 18.0, h: 18.0 }).collect();
         for r in rows {
             let Some((v, pareto)) = pick(r) else { continue };
             let at = (px(r.latency_ms), py(v));
@@ -152,7 +153,7 @@ fn layout(rows: &[Row], title: &str) -> Vec<Shape> {
             s.push(Shape::Marker { at, radius: 5.0, color: color_of(&r.variant), square: r.engine == "tract", filled: !r.variant.starts_with("pruned") });
             let text = format!("{}/{}", r.variant, r.engine);
             // Labels go right of their point unless that runs past the panel, and move down
-            // or up a line at a time off labels already placed (points often cluster).
+            // or up a line at a time off what is already drawn (points often cluster).
             let width = 8.0 * text.len() as f64;
             let x = if at.0 + 9.0 + width > left + PANEL_W { at.0 - 9.0 - width } else { at.0 + 9.0 };
             let free = |y: f64| !placed.iter().any(|p| p.overlaps(&Rect { x, y, w: width, h: LABEL_H }));

@@ -43,6 +43,7 @@ pub struct VerifyRequest {
     pub random: usize,
     pub psf: Option<PathBuf>,
     pub gate: Option<Gate>,
+    /// Timed runs per model; 0 measures accuracy only (bench times all variants together).
     pub latency_runs: usize,
     pub tract: bool,
     pub seed: u64,
@@ -89,20 +90,20 @@ pub struct VerifyReport {
     pub outputs: Vec<OutputReport>,
     pub detection: Option<DetectionReport>,
     pub latency: Vec<latency::Latency>,
-    /// Candidate / reference median on ORT.
-    pub latency_ratio: f64,
+    /// Candidate / reference median on ORT (None when latency was not measured).
+    pub latency_ratio: Option<f64>,
     pub checks: Vec<Check>,
     pub passed: bool,
 }
 
-struct Side {
-    model: ModelProto,
+pub(crate) struct Side {
+    pub(crate) model: ModelProto,
     image_input: String,
     other_inputs: Vec<String>,
-    shape: (usize, usize),
+    pub(crate) shape: (usize, usize),
 }
 
-fn side(path: &std::path::Path, what: &str) -> Result<Side> {
+pub(crate) fn side(path: &std::path::Path, what: &str) -> Result<Side> {
     let model = crate::onnx::load(path)?.model;
     let g = model.graph.as_ref().ok_or_else(|| anyhow!("{what} has no graph"))?;
     let graph = Graph::build(g)?;
@@ -113,7 +114,13 @@ fn side(path: &std::path::Path, what: &str) -> Result<Side> {
     Ok(Side { shape: (s[2], s[3]), image_input, other_inputs, model })
 }
 
-fn feeds(side: &Side, frame: &Frame, psf: Option<&Tensor>) -> Result<Vec<(String, Tensor)>> {
+/// The camera's blur map as the [1, 1, rows, cols] tensor a model with a blur input takes.
+pub(crate) fn blur_input(path: &std::path::Path) -> Result<Tensor> {
+    let m = BlurMap::load(path)?;
+    Ok(Tensor::f32(vec![1, 1, m.rows, m.cols], m.values))
+}
+
+pub(crate) fn feeds(side: &Side, frame: &Frame, psf: Option<&Tensor>) -> Result<Vec<(String, Tensor)>> {
     let mut v = vec![(side.image_input.clone(), frame.image.clone())];
     for n in &side.other_inputs {
         let p = psf.ok_or_else(|| anyhow!("input '{n}' needs a value: give the camera's blur map with --psf"))?;
@@ -130,6 +137,9 @@ fn detections(head: &Head, outputs: &[(String, Tensor)]) -> Result<Vec<Detection
 }
 
 pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
+    if req.latency_runs == 0 && req.gate.as_ref().is_some_and(|g| g.max_latency_ratio.is_some()) {
+        bail!("the gate checks max_latency_ratio, which needs timed runs: give --runs 1 or more");
+    }
     let reference = side(&req.reference, "reference")?;
     let candidate = side(&req.candidate, "candidate")?;
     if reference.shape != candidate.shape {
@@ -140,7 +150,7 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
         Some(d) => (frames::load_folder(d, h, w)?, d.display().to_string()),
         None => (frames::synthetic(req.random.max(1), h, w, req.seed), format!("{} synthetic frames, seed {}", req.random.max(1), req.seed)),
     };
-    let psf = req.psf.as_ref().map(|p| BlurMap::load(p).map(|m| Tensor::f32(vec![1, 1, m.rows, m.cols], m.values))).transpose()?;
+    let psf = req.psf.as_deref().map(blur_input).transpose()?;
     let head = {
         let r = crate::inspect::inspect(&reference.model)?;
         r.head
@@ -211,14 +221,16 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
 
     let detection = decodable.then(|| detection_report(&head, &frames, &ref_dets, &cand_dets, &tract_dets));
 
-    let latency = {
+    let latency = if req.latency_runs == 0 {
+        Vec::new()
+    } else {
         let mut models: Vec<(String, &mut dyn Runtime, Vec<(String, Tensor)>)> = vec![("reference/ort".into(), ref_rt.as_mut(), first_ref), ("candidate/ort".into(), cand_rt.as_mut(), first_cand.clone())];
         if let Some(t) = tract_rt.as_mut() {
             models.push(("candidate/tract".into(), t.as_mut(), first_cand));
         }
-        latency::interleaved(&mut models, req.latency_runs.max(1))?
+        latency::interleaved(&mut models, req.latency_runs)?
     };
-    let latency_ratio = latency[1].median_ms / latency[0].median_ms;
+    let latency_ratio = (latency.len() >= 2).then(|| latency[1].median_ms / latency[0].median_ms);
 
     let checks = req.gate.as_ref().map(|g| checks(g, &outputs, detection.as_ref(), latency_ratio)).unwrap_or_default();
     let passed = checks.iter().all(|c| c.passed);
@@ -284,7 +296,7 @@ fn detection_report(head: &Head, frames: &[Frame], reference: &[Vec<Detection>],
     }
 }
 
-fn checks(g: &Gate, outputs: &[OutputReport], det: Option<&DetectionReport>, latency_ratio: f64) -> Vec<Check> {
+fn checks(g: &Gate, outputs: &[OutputReport], det: Option<&DetectionReport>, latency_ratio: Option<f64>) -> Vec<Check> {
     let mut c = Vec::new();
     for o in outputs {
         if let Some(t) = g.max_rel_l2 {
@@ -305,8 +317,8 @@ fn checks(g: &Gate, outputs: &[OutputReport], det: Option<&DetectionReport>, lat
             c.push(Check::max("mAP@.5:.95 drop against labels", r.map50_95 - k.map50_95, t));
         }
     }
-    if let Some(t) = g.max_latency_ratio {
-        c.push(Check::max("latency ratio candidate/reference (ort)", latency_ratio, t));
+    if let (Some(t), Some(r)) = (g.max_latency_ratio, latency_ratio) {
+        c.push(Check::max("latency ratio candidate/reference (ort)", r, t));
     }
     c
 }
@@ -334,7 +346,9 @@ impl VerifyReport {
         for l in &self.latency {
             let _ = writeln!(s, "  latency {:<16} median {:.2} ms (min {:.2}, {} runs)", l.name, l.median_ms, l.min_ms, l.runs);
         }
-        let _ = writeln!(s, "  latency ratio candidate/reference on ORT: {:.3}", self.latency_ratio);
+        if let Some(r) = self.latency_ratio {
+            let _ = writeln!(s, "  latency ratio candidate/reference on ORT: {r:.3}");
+        }
         for c in &self.checks {
             let _ = writeln!(s, "  [{}] {} = {:.4e} ({} {:.4e})", if c.passed { "pass" } else { "FAIL" }, c.name, c.value, c.kind, c.threshold);
         }
