@@ -13,9 +13,8 @@
 //! DIR/recipes/, DIR/variants/    what was compiled, and the compiled folders
 //!
 //! FP16 on tract is measured only where the CPU computes f16 natively (aarch64) or when
-//! asked (`--tract-fp16`): on x86_64 tract emulates f16 arithmetic, and one run of
-//! tests/bench.rs on the v5 fixture measured it 16.6x slower than tract f32 (702.7 ms
-//! against 42.4 ms), which at 640x480 costs minutes per variant and tells a deployment
+//! asked (`--tract-fp16`): on x86_64 tract emulates f16 arithmetic, and one bench run on
+//! the v5 fixture measured it 16.6x slower than tract f32 (702.7 ms against 42.4 ms), which at 640x480 costs minutes per variant and tells a deployment
 //! only not to do it.
 
 pub mod plot;
