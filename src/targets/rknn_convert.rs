@@ -107,6 +107,7 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
     let result_path = work.path().join("result.json");
     let job = serde_json::json!({
         "config": config,
+        "dir": std::path::absolute(dir)?,
         "frames": frame_paths,
         "out_dir": work.path(),
         "rknn": std::path::absolute(&rknn_tmp)?,
@@ -119,16 +120,8 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
     eprintln!("rknn-convert: building {} with rknn-toolkit2 and simulating {} frames", dir.join("model.rknn").display(), set.frames.len());
     let log_path = dir.join("rknn_build.log");
     let log = std::fs::File::create(&log_path)?;
-    let status = Command::new(&python).arg(&worker).arg(&job_path).current_dir(dir).stdout(log.try_clone()?).stderr(log).status().with_context(|| format!("cannot run {}", python.display()))?;
+    let status = Command::new(&python).arg(&worker).arg(&job_path).current_dir(work.path()).stdout(log.try_clone()?).stderr(log).status().with_context(|| format!("cannot run {}", python.display()))?;
     let log = String::from_utf8_lossy(&std::fs::read(&log_path)?).into_owned();
-    // The toolkit dumps its intermediate graphs (check0_base_optimize.onnx, …) into the
-    // working folder; they are not part of the artifact.
-    for e in std::fs::read_dir(dir)?.flatten() {
-        let name = e.file_name().to_string_lossy().into_owned();
-        if name.starts_with("check") && name.ends_with(".onnx") {
-            let _ = std::fs::remove_file(e.path());
-        }
-    }
     if !status.success() {
         let _ = std::fs::remove_file(&rknn_tmp);
         let last = log.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message");

@@ -22,6 +22,10 @@ def main(job_path):
     with open(job_path) as f:
         job = json.load(f)
     cfg, q = job["config"], job["config"]["quantization"]
+    # rknn.yaml's paths are relative to the artifact folder; the working folder is a temp
+    # folder, where the toolkit's own dumps (check*.onnx, hybrid step files) land.
+    model = os.path.join(job["dir"], cfg["model"])
+    dataset = os.path.join(job["dir"], q["dataset"])
     r = RKNN(verbose=True)
     ok(r.config(
         mean_values=cfg["input"]["mean_values"],
@@ -32,20 +36,18 @@ def main(job_path):
         quantized_method=q["quantized_method"],
         auto_hybrid_cos_thresh=q["auto_hybrid_cos_thresh"],
     ), "config")
-    ok(r.load_onnx(model=cfg["model"], outputs=cfg["outputs"]), "load_onnx")
+    ok(r.load_onnx(model=model, outputs=cfg["outputs"]), "load_onnx")
     spans = [[l["input"], l["output"]] for l in q.get("fp16_layers", [])]
     if q["do_quantization"] and spans:
         # Hybrid quantization: step 1 writes <model>.model/.data/.quantization.cfg into the
         # working folder with the spans in float16, step 2 builds from them.
-        dataset = os.path.abspath(q["dataset"])
-        os.chdir(job["out_dir"])
         ok(r.hybrid_quantization_step1(dataset=dataset, custom_hybrid=spans), "hybrid_quantization_step1")
         stem = os.path.splitext(os.path.basename(cfg["model"]))[0]
         r.release()
         r = RKNN(verbose=True)
         ok(r.hybrid_quantization_step2(model_input=f"{stem}.model", data_input=f"{stem}.data", model_quantization_cfg=f"{stem}.quantization.cfg"), "hybrid_quantization_step2")
     else:
-        ok(r.build(do_quantization=q["do_quantization"], dataset=q["dataset"] if q["do_quantization"] else None, auto_hybrid=q["auto_hybrid"]), "build")
+        ok(r.build(do_quantization=q["do_quantization"], dataset=dataset if q["do_quantization"] else None, auto_hybrid=q["auto_hybrid"]), "build")
     ok(r.export_rknn(job["rknn"]), "export_rknn")
     ok(r.init_runtime(), "init_runtime (simulator)")
     for i, path in enumerate(job["frames"]):
