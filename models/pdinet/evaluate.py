@@ -1,13 +1,12 @@
 """mAP of an exported PDI-Net ONNX on a labelled frame folder, with ONNX Runtime and pycocotools.
 
-Decode and NMS match `pdi-compile verify` (score = obj x best class, conf 0.001, class-aware NMS
-at IoU 0.6, 300 detections), so both tools report the same numbers.
+Decode and NMS match `pdi-compile verify` (score = objectness x best class for YOLOv5, best
+class for YOLOv8; conf 0.001, class-aware NMS at IoU 0.6, 300 detections), so both tools report
+the same numbers. The head comes from the model's `pdinet.head` metadata.
 
   python pdinet/evaluate.py --model trained/pdinet_v5_tiny_trained.onnx --data /tmp/pdi-eval-256/degraded --psf ../calib/single_lwir_blur.npy
 """
 import argparse
-import contextlib
-import io
 import json
 import os
 import sys
@@ -17,7 +16,8 @@ import onnxruntime as ort
 from PIL import Image
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from pdinet.train import nms_numpy  # noqa: E402
+from pdinet.postprocess import candidates, nms_numpy  # noqa: E402
+from pdinet.coco import coco_entries, coco_map  # noqa: E402
 
 
 def main():
@@ -26,10 +26,8 @@ def main():
     ap.add_argument("--data", required=True, help="folder of 16-bit PNG frames with YOLO .txt labels")
     ap.add_argument("--psf", help="blur map .npy for models that take psf_blur as an input")
     a = ap.parse_args()
-    from pycocotools.coco import COCO
-    from pycocotools.cocoeval import COCOeval
-
     s = ort.InferenceSession(a.model, providers=["CPUExecutionProvider"])
+    head = s.get_modelmeta().custom_metadata_map.get("pdinet.head", "v5")
     names = [i.name for i in s.get_inputs()]
     files = sorted(f for f in os.listdir(a.data) if f.endswith(".png"))
     images, anns, dets = [], [], []
@@ -42,28 +40,11 @@ def main():
         out = s.run(["detections"], feeds)[0][0]
         images.append({"id": idx + 1, "width": w, "height": h})
         lp = os.path.join(a.data, f[:-4] + ".txt")
-        for lab in (np.loadtxt(lp, ndmin=2) if os.path.getsize(lp) else np.zeros((0, 5))):
-            c, cx, cy, bw, bh = lab
-            anns.append({"id": len(anns) + 1, "image_id": idx + 1, "category_id": int(c) + 1, "bbox": [(cx - bw / 2) * w, (cy - bh / 2) * h, bw * w, bh * h], "area": bw * w * bh * h, "iscrowd": 0})
-        cls = out[:, 5:].argmax(1)
-        score = out[:, 4] * out[np.arange(len(out)), 5 + cls]
-        m = score > 0.001
-        xywh, score, cls = out[m, :4], score[m], cls[m]
-        xyxy = np.concatenate([xywh[:, :2] - xywh[:, 2:] / 2, xywh[:, :2] + xywh[:, 2:] / 2], 1)
-        for j in nms_numpy(xyxy, score, cls):
-            b = xyxy[j]
-            dets.append({"image_id": idx + 1, "category_id": int(cls[j]) + 1, "bbox": [float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])], "score": float(score[j])})
-    gt = {"images": images, "annotations": anns, "categories": [{"id": c + 1, "name": str(c)} for c in range(6)]}
-    with contextlib.redirect_stdout(io.StringIO()):
-        cg = COCO()
-        cg.dataset = gt
-        cg.createIndex()
-        e = COCOeval(cg, cg.loadRes(dets), "bbox")
-        e.evaluate()
-        e.accumulate()
-        e.summarize()
-    print(json.dumps({"frames": len(files), "objects": len(anns), "map50": round(float(e.stats[1]), 4), "map50_95": round(float(e.stats[0]), 4)}))
-
+        labels = np.loadtxt(lp, ndmin=2) if os.path.getsize(lp) else np.zeros((0, 5))
+        xyxy, score, cls = candidates(out, head)
+        coco_entries(idx, w, h, labels, xyxy, score, cls, nms_numpy(xyxy, score, cls), anns, dets)
+    m50, m5095 = coco_map(images, anns, dets)
+    print(json.dumps({"model": os.path.basename(a.model), "head": head, "frames": len(files), "objects": len(anns), "map50": round(m50, 4), "map50_95": round(m5095, 4)}))
 
 if __name__ == "__main__":
     main()

@@ -272,9 +272,9 @@ class NeckV8(nn.Module):
         return o3, o4, o5
 
 
-def make_grid(h, w):
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float32),
-                            torch.arange(w, dtype=torch.float32), indexing="ij")
+def make_grid(h, w, device=None):
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float32, device=device),
+                            torch.arange(w, dtype=torch.float32, device=device), indexing="ij")
     return xs, ys
 
 
@@ -300,7 +300,7 @@ class DetectV5(nn.Module):
             if self.training:  # raw maps for the loss: [bs, na, ny, nx, 5 + nc]
                 out.append(x)
                 continue
-            gx, gy = make_grid(ny, nx)
+            gx, gy = make_grid(ny, nx, x.device)
             grid = torch.stack((gx, gy), 2).view(1, 1, ny, nx, 2) - 0.5
             anchor_grid = self.anchors[i].view(1, self.na, 1, 1, 2)
             xy, wh, conf = x.sigmoid().split((2, 2, self.nc + 1), 4)
@@ -345,10 +345,13 @@ class DetectV8(nn.Module):
         outs, anchors, strides = [], [], []
         for i, x in enumerate(feats):
             outs.append(torch.cat((self.cv2[i](x), self.cv3[i](x)), 1))
+        if self.training:  # raw maps for the loss: [bs, 4 * reg_max + nc, ny, nx] per stride
+            return outs
+        for i, x in enumerate(feats):
             _, _, h, w = x.shape
-            gx, gy = make_grid(h, w)
+            gx, gy = make_grid(h, w, x.device)
             anchors.append(torch.stack((gx + 0.5, gy + 0.5), -1).view(-1, 2))
-            strides.append(torch.full((h * w, 1), float(STRIDES[i])))
+            strides.append(torch.full((h * w, 1), float(STRIDES[i]), device=x.device))
         b = outs[0].shape[0]
         x = torch.cat([o.view(b, 4 * self.reg_max + self.nc, -1) for o in outs], 2)
         box, cls = x.split((4 * self.reg_max, self.nc), 1)
