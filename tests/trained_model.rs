@@ -89,3 +89,25 @@ fn int8_and_fp16_keep_the_trained_models_accuracy() {
     assert!((maps[1] - maps[0]).abs() <= 0.01, "INT8 {} vs f32 {}", maps[1], maps[0]);
     assert!((maps[2] - maps[0]).abs() <= 0.002, "FP16 {} vs f32 {}", maps[2], maps[0]);
 }
+
+/// The width-0.25 models (v5 and v8 heads): each reproduces its card's mAP within 1e-3
+/// through `pdi-compile verify`, survives the lossless compile, and clears the tiny model's
+/// mAP@0.5:0.95 (the floor the trained-models issue set).
+#[test]
+fn width_quarter_models_reproduce_their_cards() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = eval_set(dir.path());
+    for head in ["v5", "v8"] {
+        let model = repo().join(format!("models/trained/pdinet_{head}_w0.25_trained.onnx"));
+        let card: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(repo().join(format!("models/trained/pdinet_{head}_w0.25.card.json"))).unwrap()).unwrap();
+        assert!(std::fs::metadata(&model).unwrap().len() <= 8 << 20, "{head}: committed models stay under 8 MB");
+        let (_, j) = compile_and_verify(&model, "passes/detect-f32.yaml", &dir.path().join(head), &data);
+        let (reference, candidate) = (&j["detection"]["reference_vs_labels"], &j["detection"]["candidate_vs_labels"]);
+        let (m50, m5095) = (reference["map50"].as_f64().unwrap(), reference["map50_95"].as_f64().unwrap());
+        println!("{head} width 0.25: mAP@0.5 {m50:.4}, mAP@0.5:0.95 {m5095:.4} (card {} / {})", card["map50"], card["map50_95"]);
+        assert!((m50 - card["map50"].as_f64().unwrap()).abs() <= 1e-3, "{head}: card mAP@0.5 {} vs {m50}", card["map50"]);
+        assert!((m5095 - card["map50_95"].as_f64().unwrap()).abs() <= 1e-3, "{head}: card mAP@0.5:0.95 {} vs {m5095}", card["map50_95"]);
+        assert!(m5095 >= 0.453, "{head}: at least the tiny model's mAP@0.5:0.95");
+        assert!((candidate["map50_95"].as_f64().unwrap() - m5095).abs() < 1e-3, "{head}: lossless compile keeps accuracy");
+    }
+}
