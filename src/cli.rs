@@ -177,6 +177,9 @@ pub enum Command {
         /// Measure the FP16 variants on tract also where tract emulates f16 (x86_64: slow).
         #[arg(long)]
         tract_fp16: bool,
+        /// Time budget of the pruned variants' recovery by distillation (default: the recipe's).
+        #[arg(long)]
+        recover_minutes: Option<f64>,
         #[arg(long)]
         json: bool,
     },
@@ -247,7 +250,7 @@ pub fn run(cli: Cli) -> Result<u8> {
             }
         }
         Command::Compile { model, pipeline, out, psf, keep_outputs, calib, external_data, target, json } => {
-            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib, keep_outputs }, target };
+            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib, keep_outputs, ..Default::default() }, target };
             let r = compile(&req)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);
@@ -315,8 +318,8 @@ pub fn run(cli: Cli) -> Result<u8> {
                 return Ok(EXIT_GATE_FAILED);
             }
         }
-        Command::Bench { model, out, psf, calib, data, frames, runs, tract_fp16, json } => {
-            let r = crate::bench::bench(&crate::bench::BenchRequest { model, out: out.clone(), psf, calib, data, frames, runs, tract_fp16 })?;
+        Command::Bench { model, out, psf, calib, data, frames, runs, tract_fp16, recover_minutes, json } => {
+            let r = crate::bench::bench(&crate::bench::BenchRequest { model, out: out.clone(), psf, calib, data, frames, runs, tract_fp16, recover_minutes })?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);
             } else {

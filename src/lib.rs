@@ -21,6 +21,7 @@ pub mod onnx;
 pub mod optics;
 pub mod passes;
 pub mod pipeline;
+pub mod pyenv;
 pub mod quant;
 pub mod prune;
 pub mod runtime;

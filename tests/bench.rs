@@ -8,7 +8,7 @@ use common::*;
 fn bench_measures_every_variant_and_marks_the_pareto_front() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("bench");
-    let r = cli(&["bench", "models/fixtures/pdinet_v8_input_op17_nofold.onnx", "--psf", "calib/single_lwir_blur.npy", "--frames", "2", "--runs", "3", "-o", out.to_str().unwrap(), "--json"]);
+    let r = cli(&["bench", "models/fixtures/pdinet_v8_input_op17_nofold.onnx", "--psf", "calib/single_lwir_blur.npy", "--frames", "2", "--runs", "3", "--recover-minutes", "0.3", "-o", out.to_str().unwrap(), "--json"]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
     let rows = report["rows"].as_array().unwrap();
@@ -17,7 +17,7 @@ fn bench_measures_every_variant_and_marks_the_pareto_front() {
     // tract emulates f16 off aarch64: those rows are named as not measured instead.
     let tract_fp16 = cfg!(target_arch = "aarch64");
     let mut expected = vec!["original/ort".to_string()];
-    for v in ["f32", "fp16", "int8", "pruned-f32", "pruned-fp16", "pruned-int8"] {
+    for v in ["f32", "fp16", "int8", "pruned-norecover-f32", "pruned-f32", "pruned-fp16", "pruned-int8"] {
         expected.push(format!("{v}/ort"));
         if tract_fp16 || !v.ends_with("fp16") {
             expected.push(format!("{v}/tract"));

@@ -1,7 +1,7 @@
 //! `pdi-compile bench MODEL -o DIR`: run time against error for every deployment variant.
 //!
-//! Variants: unpruned and pruned (detect-f32 / detect-pruned-f32), each in f32, FP16 and
-//! INT8 (the last pass of detect-fp16 / detect-int8 applied to the f32 compile, so pruning
+//! Variants: unpruned and pruned with recovery (detect-f32 / detect-pruned-f32), each in
+//! f32, FP16 and INT8, and pruned without recovery (detect-pruned-f32-norecover) in f32 (the last pass of detect-fp16 / detect-int8 applied to the f32 compile, so pruning
 //! and the lossless passes run once), each on ONNX Runtime and tract, beside the original on
 //! ONNX Runtime. Every variant is verified against the original on the same frames: rel L2
 //! of the detection outputs and mAP@0.5:0.95 agreement (the original's detections as
@@ -32,6 +32,7 @@ use std::time::Instant;
 
 const DETECT_F32: &str = include_str!("../../passes/detect-f32.yaml");
 const DETECT_PRUNED_F32: &str = include_str!("../../passes/detect-pruned-f32.yaml");
+const DETECT_PRUNED_F32_NORECOVER: &str = include_str!("../../passes/detect-pruned-f32-norecover.yaml");
 const DETECT_FP16: &str = include_str!("../../passes/detect-fp16.yaml");
 const DETECT_INT8: &str = include_str!("../../passes/detect-int8.yaml");
 
@@ -46,6 +47,8 @@ pub struct BenchRequest {
     pub runs: usize,
     /// Measure FP16 variants on tract even where it emulates f16.
     pub tract_fp16: bool,
+    /// Time budget of the pruned variants' recovery (the recipe's when None).
+    pub recover_minutes: Option<f64>,
 }
 
 /// Whether tract computes f16 in hardware on this machine's architecture.
@@ -78,6 +81,21 @@ pub struct BenchReport {
     pub seconds: f64,
 }
 
+/// `text` with every `recover` pass's time budget set to `minutes` (unchanged when None).
+fn with_recover_minutes(text: &str, minutes: Option<f64>) -> Result<String> {
+    let Some(minutes) = minutes else { return Ok(text.to_string()) };
+    let mut r = Recipe::parse(text)?;
+    for p in r.passes.iter_mut().filter(|p| p.name == "recover") {
+        let mut m = match &p.options {
+            yaml_serde::Value::Mapping(m) => m.clone(),
+            _ => yaml_serde::Mapping::new(),
+        };
+        m.insert("minutes".into(), minutes.into());
+        p.options = yaml_serde::Value::Mapping(m);
+    }
+    r.to_yaml()
+}
+
 pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
     let t = Instant::now();
     if req.frames == 0 || req.runs == 0 {
@@ -99,7 +117,8 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
     let int8 = write_recipe("int8", &last_pass_of(DETECT_INT8, "int8")?)?;
     let stages = [
         ("f32", None, write_recipe("f32", DETECT_F32)?),
-        ("pruned-f32", None, write_recipe("pruned-f32", DETECT_PRUNED_F32)?),
+        ("pruned-norecover-f32", None, write_recipe("pruned-norecover-f32", DETECT_PRUNED_F32_NORECOVER)?),
+        ("pruned-f32", None, write_recipe("pruned-f32", &with_recover_minutes(DETECT_PRUNED_F32, req.recover_minutes)?)?),
         ("fp16", Some("f32"), fp16.clone()),
         ("int8", Some("f32"), int8.clone()),
         ("pruned-fp16", Some("pruned-f32"), fp16),
@@ -116,7 +135,7 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
             pipeline: recipe.clone(),
             out_dir: variant_dir(name),
             external_data: false,
-            context: PassContext { psf: req.psf.clone(), calib: req.calib.clone(), keep_outputs: None },
+            context: PassContext { psf: req.psf.clone(), calib: req.calib.clone(), keep_outputs: None, ..Default::default() },
             target: crate::targets::Target::Onnx,
         })
         .map_err(|e| anyhow!("compiling the {name} variant: {e:#}"))?;

@@ -9,6 +9,7 @@ pub mod fold_constants;
 pub mod fold_psf_gates;
 pub mod prune;
 pub mod quantize;
+pub mod recover;
 pub mod resize_to_deconv;
 pub mod rknn_hybrid;
 pub mod rknn_legalize;
@@ -19,7 +20,7 @@ use crate::pipeline::{Pass, PassSpec};
 use anyhow::{anyhow, bail, Result};
 
 /// Every pass this build knows, by the name recipes use.
-pub const KNOWN: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "prune", "quantize", "fp16", "rknn-legalize", "rknn-hybrid"];
+pub const KNOWN: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "prune", "recover", "quantize", "fp16", "rknn-legalize", "rknn-hybrid"];
 
 pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
     Ok(match spec.name.as_str() {
@@ -32,6 +33,7 @@ pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
         "dce" => Box::new(dce::Dce),
         "cleanup" => Box::new(cleanup::Cleanup),
         "prune" => Box::new(prune::Prune { options: options(spec)? }),
+        "recover" => Box::new(recover::Recover { options: options(spec)? }),
         "fp16" => Box::new(to_fp16::ToFp16 { options: options(spec)? }),
         "quantize" => Box::new(quantize::Quantize { options: options(spec)? }),
         "rknn-legalize" => Box::new(rknn_legalize::RknnLegalize { options: options(spec)? }),

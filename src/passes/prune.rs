@@ -21,9 +21,10 @@ use crate::ir::{infer, Graph};
 use crate::quant::attribution::{output_errors, worst_rel_l2, OutputError};
 use crate::onnx::edit::expose_outputs;
 use crate::onnx::proto::ModelProto;
-use crate::pipeline::{counts, Clock, Pass, PassContext};
+use crate::pipeline::{counts, Clock, Pass, PassContext, Teacher};
 use crate::prune::compensate::{self, Mode};
 use crate::prune::importance::{self, Criterion};
+use crate::prune::sensitivity::{allocate as allocate_ratios, Budget, GroupSensitivity, Level, LEVELS};
 use crate::prune::{apply, select, Scope, SelectOptions};
 use crate::runtime::ort_runtime::OrtRuntime;
 use crate::runtime::Runtime;
@@ -49,11 +50,26 @@ pub struct Options {
     /// Values or node names whose channels must all stay.
     pub ignore: Vec<String>,
     pub seed: u64,
+    /// A budget instead of one ratio: per-group ratios from measured sensitivity.
+    pub target: Option<Target>,
+    /// Calibration frames the sensitivity of each group is measured on.
+    pub sensitivity_frames: usize,
+}
+
+/// What sensitivity-guided pruning must reach, as a fraction of the unpruned model: one of
+/// the two.
+#[derive(serde::Deserialize, serde::Serialize, Clone, Copy, Debug)]
+#[serde(deny_unknown_fields)]
+pub struct Target {
+    /// MACs of the pruned model over the unpruned one.
+    pub macs: Option<f64>,
+    /// ONNX Runtime latency over the unpruned model's, measured interleaved on this machine.
+    pub latency: Option<f64>,
 }
 
 impl Default for Options {
     fn default() -> Self {
-        Options { ratio: 0.5, importance: Criterion::L1, scope: Scope::Uniform, round_to: 8, compensate: Mode::Lstsq, calib_frames: 12, ridge: 1e-3, ignore: Vec::new(), seed: 0 }
+        Options { ratio: 0.5, importance: Criterion::L1, scope: Scope::Uniform, round_to: 8, compensate: Mode::Lstsq, calib_frames: 12, ridge: 1e-3, ignore: Vec::new(), seed: 0, target: None, sensitivity_frames: 4 }
     }
 }
 
@@ -100,13 +116,23 @@ impl Pass for Prune {
             Criterion::Activation => (importance::activation(&analysis, &mean_abs(&original, &analysis, &feeds)?), 0),
         };
         clock.lap("frames_and_importance");
-        let plan = select(&analysis, &scores, &SelectOptions { ratio: o.ratio, round_to: o.round_to, scope: o.scope });
-        let kept = apply::kept_positions(&analysis, &plan.keep)?;
         let opset = crate::onnx::edit::default_opset(model).unwrap_or(13);
+        let (per_group, sensitivity) = match o.target {
+            None => (None, None),
+            Some(target) => {
+                let feeds = feeds.get(..o.sensitivity_frames.min(feeds.len())).filter(|f| !f.is_empty()).ok_or_else(|| anyhow!("a pruning target needs calibration frames: {source}"))?;
+                let (ratios, report) = allocate(&original, &analysis, &scores, o, opset, target, feeds)?;
+                (Some(ratios), Some(report))
+            }
+        };
+        clock.lap("sensitivity");
+        let plan = select(&analysis, &scores, &SelectOptions { ratio: o.ratio, round_to: o.round_to, scope: o.scope, per_group });
+        let kept = apply::kept_positions(&analysis, &plan.keep)?;
         let pg = super::graph_mut(model)?;
         let rewritten = apply::apply(pg, &analysis, &kept, opset)?;
         super::dce::eliminate(pg)?;
         check_outputs(&original, model)?;
+        cx.teacher.replace(Some(Teacher { model: original.clone(), kept: kept.clone() }));
         clock.lap("rewrite");
 
         let (fit, held_out): (Vec<_>, Vec<_>) = feeds.iter().enumerate().partition(|(i, _)| feeds.len() < 4 || i % 4 != 3);
@@ -143,7 +169,9 @@ impl Pass for Prune {
         let (before, after) = (counts(&original)?, counts(model)?);
         let pruned_groups = plan.groups.iter().filter(|p| p.after < p.before).count();
         Ok(serde_json::json!({
-            "ratio": o.ratio,
+            "ratio": if o.target.is_some() { serde_json::Value::Null } else { o.ratio.into() },
+            "target": o.target,
+            "sensitivity": sensitivity,
             "importance": o.importance,
             "importance_fallback_classes": fallback,
             "scope": o.scope,
@@ -163,6 +191,59 @@ impl Pass for Prune {
             "groups": plan.groups,
         }))
     }
+}
+
+/// Sensitivity of every prunable group at each level, then the per-group ratios meeting
+/// `target` with the least predicted damage (see `prune::sensitivity`).
+fn allocate(original: &ModelProto, analysis: &crate::analysis::channels::ChannelAnalysis, scores: &[f64], o: &Options, opset: i64, target: Target, feeds: &[Vec<(String, Tensor)>]) -> Result<(HashMap<String, f64>, serde_json::Value)> {
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let pruned = |ratios: &HashMap<String, f64>| -> Result<(ModelProto, crate::prune::Plan)> {
+        let plan = select(analysis, scores, &SelectOptions { ratio: 0.0, round_to: o.round_to, scope: o.scope, per_group: Some(ratios.clone()) });
+        let kept = apply::kept_positions(analysis, &plan.keep)?;
+        let mut m = original.clone();
+        let g = super::graph_mut(&mut m)?;
+        apply::apply(g, analysis, &kept, opset)?;
+        super::dce::eliminate(g)?;
+        Ok((m, plan))
+    };
+    let base = counts(original)?.macs;
+    let mut groups = Vec::new();
+    for (gi, g) in analysis.groups.iter().enumerate().filter(|(_, g)| g.frozen.is_none()) {
+        let mut levels: Vec<Level> = Vec::new();
+        for &ratio in LEVELS {
+            let (m, plan) = pruned(&HashMap::from([(g.anchor.clone(), ratio)]))?;
+            let keep = plan.groups[gi].after;
+            if keep >= g.classes.len() || levels.last().is_some_and(|l| l.keep == keep) {
+                continue;
+            }
+            let damage = worst_rel_l2(&output_errors(original, &m, feeds, threads)?);
+            levels.push(Level { ratio, keep, damage, macs_saved: base.saturating_sub(counts(&m)?.macs) });
+        }
+        if !levels.is_empty() {
+            groups.push(GroupSensitivity { anchor: g.anchor.clone(), channels: g.classes.len(), levels, chosen: 0.0 });
+        }
+    }
+    let mut macs_of = |r: &HashMap<String, f64>| -> Result<u64> { Ok(counts(&pruned(r)?.0)?.macs) };
+    let (ratios, met) = match (target.macs, target.latency) {
+        (Some(f), None) => allocate_ratios(&mut groups, Budget::Macs((f * base as f64) as u64), &mut macs_of)?,
+        (None, Some(f)) => {
+            let mut reference = OrtRuntime::new(original)?;
+            let mut check = |r: &HashMap<String, f64>| -> Result<bool> { Ok(latency_ratio(&mut reference, &pruned(r)?.0, &feeds[0])? <= f) };
+            allocate_ratios(&mut groups, Budget::Check(&mut check), &mut macs_of)?
+        }
+        _ => bail!("prune target: give exactly one of macs or latency (a fraction of the unpruned model), e.g. target: {{macs: 0.3}}"),
+    };
+    if !met {
+        eprintln!("warning: prune: the target {target:?} is out of reach with ratios up to {}; pruned as far as the levels go", LEVELS[LEVELS.len() - 1]);
+    }
+    Ok((ratios, serde_json::json!({ "met": met, "levels": LEVELS, "frames": feeds.len(), "groups": groups })))
+}
+
+/// ONNX Runtime latency of `candidate` over `reference`'s, timed interleaved on one frame.
+fn latency_ratio(reference: &mut OrtRuntime, candidate: &ModelProto, feed: &[(String, Tensor)]) -> Result<f64> {
+    let mut c = OrtRuntime::new(candidate)?;
+    let t = crate::verify::latency::interleaved(&mut [("reference".into(), reference as &mut dyn Runtime, feed.to_vec()), ("candidate".into(), &mut c, feed.to_vec())], 7)?;
+    Ok(t[1].median_ms / t[0].median_ms.max(1e-9))
 }
 
 /// Mean |activation| per channel of every analysed value read by a convolution.
@@ -200,6 +281,6 @@ fn check_outputs(original: &ModelProto, pruned: &ModelProto) -> Result<()> {
 }
 
 /// Rel L2 per output, and per channel group of a detection output as `output/group`.
-fn by_name(errors: &[OutputError]) -> serde_json::Value {
+pub(crate) fn by_name(errors: &[OutputError]) -> serde_json::Value {
     errors.iter().map(|e| (e.group.map_or(e.output.clone(), |g| format!("{}/{g}", e.output)), serde_json::json!(e.error.rel_l2))).collect::<serde_json::Map<_, _>>().into()
 }

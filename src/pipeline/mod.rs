@@ -24,6 +24,16 @@ pub struct PassContext {
     pub calib: Option<PathBuf>,
     /// Outputs `strip-recon` keeps (`--keep-outputs`), overriding recognition.
     pub keep_outputs: Option<Vec<String>>,
+    /// The model before the last structural change: `prune` leaves the unpruned model here,
+    /// `recover` distills the pruned one from it.
+    pub teacher: std::cell::RefCell<Option<Teacher>>,
+}
+
+/// An unpruned model and, for every value that lost channels, the positions it kept.
+#[derive(Clone, Debug)]
+pub struct Teacher {
+    pub model: ModelProto,
+    pub kept: std::collections::HashMap<String, Vec<usize>>,
 }
 
 pub trait Pass {

@@ -5,7 +5,9 @@
 pub mod apply;
 pub mod compensate;
 pub mod importance;
+pub mod recover;
 pub mod ridge;
+pub mod sensitivity;
 
 use crate::analysis::channels::ChannelAnalysis;
 use serde::{Deserialize, Serialize};
@@ -23,6 +25,9 @@ pub struct SelectOptions {
     pub ratio: f64,
     pub round_to: usize,
     pub scope: Scope,
+    /// Per-group ratios by group anchor (sensitivity allocation); groups not named keep
+    /// every channel. Overrides `ratio` and `scope`.
+    pub per_group: Option<std::collections::HashMap<String, f64>>,
 }
 
 /// What happened to one group.
@@ -92,9 +97,10 @@ pub fn select(a: &ChannelAnalysis, importance: &[f64], opts: &SelectOptions) -> 
             groups.push(plan);
             continue;
         }
-        let target = match opts.scope {
-            Scope::Uniform => n as f64 * (1.0 - opts.ratio),
-            Scope::Global => g.classes.iter().filter(|&&c| normalized[c] >= threshold).count() as f64,
+        let target = match (&opts.per_group, opts.scope) {
+            (Some(ratios), _) => n as f64 * (1.0 - ratios.get(&g.anchor).copied().unwrap_or(0.0)),
+            (None, Scope::Uniform) => n as f64 * (1.0 - opts.ratio),
+            (None, Scope::Global) => g.classes.iter().filter(|&&c| normalized[c] >= threshold).count() as f64,
         };
         let parts = g.segments.first().map_or(1, |s| s.1);
         let (k, note) = keep_count(n, target, opts.round_to, parts);

@@ -21,23 +21,11 @@ use crate::tensor::Tensor;
 use anyhow::{anyhow, bail, Context, Result};
 use serde::Serialize;
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::Command;
 use std::time::Instant;
 
 const WORKER: &str = include_str!("rknn_worker.py");
-/// What the toolkit needs beside itself (its own pins: newer torch, numpy, onnx or protobuf
-/// break its import or its ONNX loader).
-const TOOLKIT_PINS: &[&str] = &[
-    "rknn-toolkit2==2.5.0",
-    "torch<=2.4",
-    "numpy<=1.26.4",
-    "onnx<=1.18",
-    "onnxruntime<=1.19",
-    "protobuf<=4.25.4",
-    "opencv-python-headless<4.11",
-];
-const STAMP: &str = ".installed-rknn-toolkit2-2.5.0";
 /// Post-processing thresholds for the detection agreement (YOLO's deployment defaults).
 const CONF: f32 = 0.25;
 const NMS_IOU: f32 = 0.45;
@@ -92,7 +80,7 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
     if req.frames == 0 {
         bail!("--frames must be at least 1");
     }
-    let python = toolkit_python()?;
+    let python = crate::pyenv::toolkit_python()?;
 
     let [_, _, h, w] = config.input.shape;
     let set = calibration_frames(req.data.as_deref(), req.frames, h, w, VALIDATION_SEED)?;
@@ -248,38 +236,6 @@ fn count_matched(reference: &[Detection], candidate: &[Detection]) -> usize {
             best.map(|(j, _)| used[j] = true).is_some()
         })
         .count()
-}
-
-/// The toolkit venv's Python, installing it on first use.
-fn toolkit_python() -> Result<PathBuf> {
-    if let Some(p) = std::env::var_os("PDI_RKNN_PYTHON") {
-        return Ok(PathBuf::from(p));
-    }
-    let cache = std::env::var_os("PDI_CACHE").map(PathBuf::from).or_else(|| std::env::var_os("HOME").map(|h| Path::new(&h).join(".cache/pdi-compile"))).ok_or_else(|| anyhow!("set PDI_CACHE or HOME: rknn-convert installs rknn-toolkit2 into a cache folder"))?;
-    let venv = cache.join("rknn-env");
-    let python = venv.join("bin/python");
-    if venv.join(STAMP).exists() {
-        return Ok(python);
-    }
-    let imports = |p: &Path| Command::new(p).args(["-c", "import rknn.api"]).output().is_ok_and(|o| o.status.success());
-    if !(python.exists() && imports(&python)) {
-        eprintln!("rknn-convert: installing rknn-toolkit2 2.5.0 into {} (first use: ~6 min, ~6 GB)", venv.display());
-        let base = std::env::var_os("PDI_RKNN_BASE_PYTHON").map(PathBuf::from).unwrap_or_else(|| PathBuf::from("python3.11"));
-        let run = |cmd: &mut Command, what: &str| -> Result<()> {
-            let s = cmd.status().with_context(|| format!("{what}: cannot start it"))?;
-            if !s.success() {
-                bail!("{what} failed ({s})");
-            }
-            Ok(())
-        };
-        run(Command::new(&base).args(["-m", "venv"]).arg(&venv), "creating the rknn-toolkit2 venv (it needs Python 3.11: install python3.11 or set PDI_RKNN_BASE_PYTHON)")?;
-        run(Command::new(venv.join("bin/pip")).args(["install", "-q", "--disable-pip-version-check"]).args(TOOLKIT_PINS), "pip install rknn-toolkit2==2.5.0")?;
-        if !imports(&python) {
-            bail!("rknn-toolkit2 installed into {} but does not import; delete that folder and retry", venv.display());
-        }
-    }
-    std::fs::write(venv.join(STAMP), b"")?;
-    Ok(python)
 }
 
 impl ConvertReport {

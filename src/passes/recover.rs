@@ -1,0 +1,92 @@
+//! `recover`: recovery of a pruned detector by distillation from the unpruned one.
+//!
+//! Needs: a `prune` pass earlier in the recipe (it leaves the unpruned model as the teacher),
+//! a YOLOv5 or YOLOv8 head, and PyTorch (the cache's torch venv, installed on first use;
+//! `PDI_TORCH_PYTHON` points at another). Frames come from `--calib` or the physics pipeline;
+//! no labels are read. Trains on a CUDA GPU when torch sees one, else on the CPU.
+//! Guarantees: only initializer values change (nodes, names, shapes and types are checked);
+//! the PSF gate maps, upsampling kernels and decode constants stay as they were (only Conv
+//! weights and biases train); the trained weights are kept only when they bring the worst
+//! output group (boxes, objectness, classes) closer to the teacher on held-out frames.
+//! Reports: the loss per epoch, device, steps, frames/s and seconds, and the rel L2 per output
+//! group against the teacher on held-out frames before and after.
+
+use crate::calib_frames::image_feeds;
+use crate::ir::{infer, Graph};
+use crate::onnx::proto::ModelProto;
+use super::prune::by_name;
+use crate::pipeline::{Pass, PassContext, Teacher};
+use crate::prune::recover::{distill, Options as Distill};
+use crate::quant::attribution::{output_errors, worst_rel_l2};
+use anyhow::{anyhow, bail, Result};
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Options {
+    /// Time budget of the training; the schedule shortens to fit it.
+    pub minutes: f64,
+    /// Passes over the frames, when the budget allows.
+    pub epochs: usize,
+    pub lr: f64,
+    /// Training frames (unlabelled); 16 more are held out to judge the result.
+    pub frames: usize,
+    pub batch: usize,
+    pub seed: u64,
+    /// `cuda` or `cpu`; empty: CUDA when present.
+    pub device: String,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options { minutes: 15.0, epochs: 30, lr: 1e-3, frames: 512, batch: 16, seed: 0, device: String::new() }
+    }
+}
+
+pub struct Recover {
+    pub options: Options,
+}
+
+/// Frames held out from training to judge it (not the worker's: the pass decides with them).
+const HELD_OUT: usize = 16;
+
+impl Pass for Recover {
+    fn name(&self) -> &'static str {
+        "recover"
+    }
+
+    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+        let o = &self.options;
+        if o.frames < o.batch || o.batch == 0 || !(o.lr > 0.0) || !(o.minutes > 0.0) {
+            bail!("recover needs frames >= batch > 0, lr > 0 and minutes > 0");
+        }
+        let Teacher { model: teacher, kept } = cx.teacher.borrow().clone().ok_or_else(|| anyhow!("recover distills a pruned model from the unpruned one: put a prune pass before it in the recipe"))?;
+        let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+        let graph = Graph::build(g)?;
+        let inf = infer(&graph);
+        let (feeds, source) = image_feeds(&graph, &inf, cx.calib.as_deref(), o.frames + HELD_OUT, o.seed.wrapping_add(17))?;
+        if feeds.len() < o.batch + 2 {
+            bail!("recover got {} frames from {source}; it needs at least {}", feeds.len(), o.batch + 2);
+        }
+        let held = HELD_OUT.min(feeds.len() / 4);
+        let (train, check) = feeds.split_at(feeds.len() - held);
+        let image = |f: &Vec<(String, crate::tensor::Tensor)>| f[0].1.clone();
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let before = output_errors(&teacher, model, check, threads)?;
+        let mut trained = model.clone();
+        let opts = Distill { minutes: o.minutes, epochs: o.epochs, lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone() };
+        let outcome = distill(&mut trained, &teacher, &kept, &train.iter().map(image).collect::<Vec<_>>(), &check.iter().map(image).collect::<Vec<_>>(), &opts)?;
+        let after = output_errors(&teacher, &trained, check, threads)?;
+        let kept = worst_rel_l2(&after) < worst_rel_l2(&before);
+        if kept {
+            *model = trained;
+        }
+        Ok(serde_json::json!({
+            "kept": kept,
+            "frames": train.len(),
+            "held_out_frames": check.len(),
+            "calibration": source,
+            "output_rel_l2": { "before": by_name(&before), "after": by_name(&after) },
+            "training": outcome,
+        }))
+    }
+}

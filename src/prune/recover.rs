@@ -1,0 +1,186 @@
+//! Recovery by distillation: the pruned model trained to match the unpruned one's head
+//! convolutions and their input features, in a PyTorch worker (`recover_worker.py`, run by the cache's torch Python).
+//! Only initializer values come back: node list, initializer names and shapes are checked
+//! against what was sent.
+
+use crate::analysis::channels::detector_convolutions;
+use crate::analysis::head::{self, HeadKind};
+use crate::ir::{infer, Graph};
+use crate::onnx::proto::ModelProto;
+use crate::tensor::Tensor;
+use anyhow::{anyhow, bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::collections::HashMap;
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Command, Stdio};
+
+const WORKER: &str = include_str!("recover_worker.py");
+
+pub struct Options {
+    pub minutes: f64,
+    pub epochs: usize,
+    pub lr: f64,
+    pub batch: usize,
+    pub seed: u64,
+    /// `cuda`, `cpu`, or empty for CUDA when torch sees a GPU.
+    pub device: String,
+}
+
+/// What one distillation did, from the worker's own account.
+#[derive(serde::Serialize, serde::Deserialize, Debug)]
+pub struct Outcome {
+    pub held_out_loss_before: f64,
+    pub held_out_loss_after: f64,
+    pub loss_per_epoch: Vec<f64>,
+    pub epochs: usize,
+    pub steps: usize,
+    pub seconds: f64,
+    pub frames_per_second: f64,
+    pub device: String,
+    pub torch: String,
+}
+
+/// The head convolutions to distil and how to read their channels, for the worker.
+pub fn head_specs(model: &ModelProto) -> Result<Vec<serde_json::Value>> {
+    let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+    let graph = Graph::build(g)?;
+    let inf = infer(&graph);
+    let outputs: Vec<String> = g.output.iter().map(|o| o.name.clone()).collect();
+    let head = head::detect(&graph, &inf, &outputs);
+    let nc = head.classes.ok_or_else(|| anyhow!("recover needs a YOLOv5 or YOLOv8 head with a known class count"))?;
+    let mut specs = Vec::new();
+    for i in detector_convolutions(&graph) {
+        let n = graph.node(i);
+        let channels = n.input.get(1).and_then(|w| graph.initializers.get(w.as_str())).and_then(|w| w.dims.first()).copied().unwrap_or(0) as usize;
+        let value = n.output[0].clone();
+        let spec = match head.kind {
+            HeadKind::Yolov5Anchor if channels % (5 + nc) == 0 => serde_json::json!({"value": value, "kind": "v5", "anchors": channels / (5 + nc), "outputs": 5 + nc}),
+            HeadKind::Yolov8Dfl if Some(channels) == head.reg_max.map(|r| 4 * r) => serde_json::json!({"value": value, "kind": "v8box", "reg_max": head.reg_max}),
+            HeadKind::Yolov8Dfl if channels == nc => serde_json::json!({"value": value, "kind": "v8cls"}),
+            _ => bail!("head convolution '{}' ({channels} channels) does not fit a {:?} head with {nc} classes; recover cannot read it", n.name, head.kind),
+        };
+        specs.push(spec);
+    }
+    if specs.is_empty() {
+        bail!("no head convolutions found; recover needs a detector ending in convolutions");
+    }
+    Ok(specs)
+}
+
+/// The head convolutions' inputs, matched channel by channel: a pruned value's kept
+/// positions index the teacher's channels (a dense signal where the logits are sparse).
+fn feature_specs(model: &ModelProto, kept: &HashMap<String, Vec<usize>>) -> Result<Vec<serde_json::Value>> {
+    let graph = Graph::build(model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?)?;
+    let mut values: Vec<String> = detector_convolutions(&graph).into_iter().map(|i| graph.node(i).input[0].clone()).collect();
+    values.sort();
+    values.dedup();
+    Ok(values.into_iter().map(|v| serde_json::json!({ "value": v, "keep": kept.get(&v) })).collect())
+}
+
+/// Trains `student`'s weights towards `teacher` on `frames` (each [1, 1, H, W]), measuring on
+/// `held_out`; writes them into `student`.
+pub fn distill(student: &mut ModelProto, teacher: &ModelProto, kept: &HashMap<String, Vec<usize>>, frames: &[Tensor], held_out: &[Tensor], o: &Options) -> Result<Outcome> {
+    let heads = head_specs(student)?;
+    let features = feature_specs(student, kept)?;
+    let work = tempfile::tempdir()?;
+    let dir = work.path();
+    crate::onnx::save(student, &dir.join("student.onnx"))?;
+    crate::onnx::save(teacher, &dir.join("teacher.onnx"))?;
+    write_frames(frames, &dir.join("frames.npy"))?;
+    write_frames(held_out, &dir.join("held_out.npy"))?;
+    let config = serde_json::json!({
+        "student": dir.join("student.onnx"), "teacher": dir.join("teacher.onnx"), "out": dir.join("trained.onnx"),
+        "frames": dir.join("frames.npy"), "held_out": dir.join("held_out.npy"), "heads": heads, "features": features,
+        "minutes": o.minutes, "epochs": o.epochs, "lr": o.lr, "batch": o.batch, "seed": o.seed,
+        "device": if o.device.is_empty() { serde_json::Value::Null } else { o.device.clone().into() },
+    });
+    std::fs::write(dir.join("config.json"), serde_json::to_vec(&config)?)?;
+    std::fs::write(dir.join("recover_worker.py"), WORKER)?;
+    let python = crate::pyenv::torch_python()?;
+    let mut child = Command::new(&python)
+        .arg(dir.join("recover_worker.py"))
+        .arg("train")
+        .arg(dir.join("config.json"))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .with_context(|| format!("cannot run {}", python.display()))?;
+    let stderr = child.stderr.take().expect("piped");
+    let errors = std::thread::spawn(move || std::io::read_to_string(stderr).unwrap_or_default());
+    let pb = ProgressBar::new(1);
+    pb.set_style(ProgressStyle::with_template("recover [{bar:30}] {pos}/{len} steps, {msg} ({elapsed})").expect("valid template").progress_chars("=> "));
+    let mut outcome = None;
+    for line in BufReader::new(child.stdout.take().expect("piped")).lines() {
+        let Ok(event) = serde_json::from_str::<serde_json::Value>(&line?) else { continue };
+        match event["event"].as_str() {
+            Some("start") => pb.set_message(format!("on {}", event["device"].as_str().unwrap_or("?"))),
+            Some("step") | Some("epoch") => {
+                pb.set_length(event["steps"].as_u64().unwrap_or(1));
+                pb.set_position(event["step"].as_u64().unwrap_or(0));
+                pb.set_message(format!("loss {:.4}", event["loss"].as_f64().unwrap_or(f64::NAN)));
+            }
+            Some("done") => outcome = Some(serde_json::from_value::<Outcome>(event)?),
+            _ => {}
+        }
+    }
+    pb.finish_and_clear();
+    let status = child.wait()?;
+    let err = errors.join().unwrap_or_default();
+    let Some(outcome) = outcome.filter(|_| status.success()) else {
+        let last = err.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message");
+        bail!("the recovery worker failed ({status}): {last}");
+    };
+    let trained = crate::onnx::load(&dir.join("trained.onnx"))?.model;
+    take_weights(student, &trained)?;
+    Ok(outcome)
+}
+
+/// Runs every node of `model` in the worker's torch interpreter and in ONNX Runtime on
+/// `frames`: the worst difference per op type, on each value's scale (floored at 1).
+pub fn check_ops(model: &ModelProto, frames: &[Tensor]) -> Result<std::collections::BTreeMap<String, f64>> {
+    let work = tempfile::tempdir()?;
+    let dir = work.path();
+    crate::onnx::save(model, &dir.join("model.onnx"))?;
+    write_frames(frames, &dir.join("frames.npy"))?;
+    std::fs::write(dir.join("recover_worker.py"), WORKER)?;
+    let python = crate::pyenv::torch_python()?;
+    let out = Command::new(&python).arg(dir.join("recover_worker.py")).arg("check").arg(dir.join("model.onnx")).arg(dir.join("frames.npy")).output().with_context(|| format!("cannot run {}", python.display()))?;
+    if !out.status.success() {
+        let err = String::from_utf8_lossy(&out.stderr);
+        bail!("the op check failed: {}", err.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message"));
+    }
+    let report: serde_json::Value = serde_json::from_slice(out.stdout.rsplit(|&b| b == b'\n').find(|l| !l.is_empty()).unwrap_or_default())?;
+    serde_json::from_value(report["ops"].clone()).map_err(Into::into)
+}
+
+/// Copies `trained`'s initializer values into `model`, refusing anything but new values.
+fn take_weights(model: &mut ModelProto, trained: &ModelProto) -> Result<()> {
+    let (g, t) = (model.graph.as_mut().expect("checked"), trained.graph.as_ref().ok_or_else(|| anyhow!("trained model has no graph"))?);
+    if g.node != t.node {
+        bail!("the recovery worker changed the graph's nodes; this is a bug, please report it");
+    }
+    if g.initializer.len() != t.initializer.len() || g.initializer.iter().zip(&t.initializer).any(|(a, b)| a.name != b.name || a.dims != b.dims || a.data_type != b.data_type) {
+        bail!("the recovery worker changed the initializers' names, shapes or types; this is a bug, please report it");
+    }
+    for (a, b) in g.initializer.iter_mut().zip(&t.initializer) {
+        let value = crate::onnx::tensor_proto::to_tensor(b)?;
+        if value.as_f32().is_some_and(|v| v.iter().any(|x| !x.is_finite())) {
+            bail!("recovery diverged: '{}' has non-finite values; lower the recover pass's lr", a.name);
+        }
+        *a = b.clone();
+    }
+    Ok(())
+}
+
+fn write_frames(frames: &[Tensor], path: &Path) -> Result<()> {
+    let first = frames.first().ok_or_else(|| anyhow!("recover needs frames"))?;
+    let mut shape = first.shape.clone();
+    shape[0] = frames.len();
+    let mut data = Vec::with_capacity(first.len() * frames.len());
+    for f in frames {
+        data.extend_from_slice(f.as_f32().ok_or_else(|| anyhow!("frames are float"))?);
+    }
+    std::fs::write(path, crate::optics::npy::to_bytes(&shape, &data))?;
+    Ok(())
+}

@@ -1,0 +1,393 @@
+"""Recovery by distillation for `pdi-compile`'s `recover` pass, run in the cache's torch venv.
+
+The ONNX graphs run as torch modules through a small interpreter of the ops the compiler
+emits (every op is checked against ONNX Runtime by `check`). The pruned student's Conv
+weights and biases are parameters; everything else (PSF gate maps, upsampling kernels,
+decode constants) stays fixed. The student learns to match the unpruned teacher's head
+convolutions (the logits before the decode) on unlabelled frames, freshly augmented each
+epoch, and the trained initializers go back into the student ONNX file unchanged in shape.
+
+  python recover_worker.py train CONFIG.json   # progress as JSON lines on stdout
+  python recover_worker.py check MODEL.onnx FRAMES.npy   # every node output vs ONNX Runtime
+"""
+import json
+import math
+import os
+import sys
+import time
+
+import numpy as np
+import onnx
+import torch
+import torch.nn.functional as F
+from onnx import numpy_helper
+
+
+def attrs(node):
+    return {a.name: onnx.helper.get_attribute_value(a) for a in node.attribute}
+
+
+def pads_of(a, k):
+    p = list(a.get("pads", [0] * (2 * k)))
+    return p[:k], p[k:]
+
+
+def conv(x, w, b, a):
+    begin, end = pads_of(a, 2)
+    if begin != end:
+        x = F.pad(x, (begin[1], end[1], begin[0], end[0]))
+        begin = [0, 0]
+    return F.conv2d(x, w, b, a.get("strides", [1, 1]), begin, a.get("dilations", [1, 1]), a.get("group", 1))
+
+
+def conv_transpose(x, w, b, a):
+    begin, end = pads_of(a, 2)
+    if begin != end:
+        raise ValueError("ConvTranspose with asymmetric pads is not interpreted")
+    return F.conv_transpose2d(x, w, b, a.get("strides", [1, 1]), begin, a.get("output_padding", [0, 0]), a.get("group", 1), a.get("dilations", [1, 1]))
+
+
+def max_pool(x, a):
+    begin, end = pads_of(a, 2)
+    if begin != end:
+        x = F.pad(x, (begin[1], end[1], begin[0], end[0]), value=float("-inf"))
+        begin = [0, 0]
+    return F.max_pool2d(x, a["kernel_shape"], a.get("strides", [1, 1]), begin, a.get("dilations", [1, 1]), ceil_mode=bool(a.get("ceil_mode", 0)))
+
+
+def split(x, sizes, a, n_out):
+    axis = a.get("axis", 0)
+    if sizes is None:
+        sizes = a.get("split")
+    if sizes is None:
+        sizes = [x.shape[axis] // n_out] * n_out
+    return list(torch.split(x, [int(s) for s in sizes], axis))
+
+
+def slice_(x, starts, ends, axes, steps):
+    axes = range(len(starts)) if axes is None else axes
+    steps = [1] * len(starts) if steps is None else steps
+    idx = [slice(None)] * x.dim()
+    for s, e, ax, st in zip(starts, ends, axes, steps):
+        ax, n = int(ax) % x.dim(), x.shape[int(ax)]
+        s, e = int(max(min(s, n), -n)), int(max(min(e, n), -n - 1))
+        idx[ax] = slice(s, e, int(st))
+    return x[tuple(idx)]
+
+
+def reshape(x, shape):
+    shape = [int(v) for v in shape]
+    shape = [x.shape[i] if v == 0 else v for i, v in enumerate(shape)]
+    return x.reshape(shape)
+
+
+def ints(t):
+    return None if t is None else [int(v) for v in t.flatten().tolist()]
+
+
+def run_node(n, v):
+    """Outputs of node n given its input values v (None for omitted optional inputs)."""
+    a, op = attrs(n), n.op_type
+    if op == "Conv":
+        return [conv(v[0], v[1], v[2] if len(v) > 2 else None, a)]
+    if op == "ConvTranspose":
+        return [conv_transpose(v[0], v[1], v[2] if len(v) > 2 else None, a)]
+    binary = {"Add": torch.add, "Sub": torch.sub, "Mul": torch.mul, "Div": torch.div, "Pow": torch.pow}
+    if op in binary:
+        return [binary[op](v[0], v[1])]
+    unary = {"Relu": F.relu, "Sigmoid": torch.sigmoid, "Identity": lambda x: x, "Exp": torch.exp, "Tanh": torch.tanh, "Neg": torch.neg, "Sqrt": torch.sqrt}
+    if op in unary:
+        return [unary[op](v[0])]
+    if op == "Clip":
+        lo = v[1] if len(v) > 1 and v[1] is not None else a.get("min")
+        hi = v[2] if len(v) > 2 and v[2] is not None else a.get("max")
+        return [torch.clamp(v[0], None if lo is None else float(lo), None if hi is None else float(hi))]
+    if op == "Concat":
+        return [torch.cat(v, a["axis"])]
+    if op == "Split":
+        return split(v[0], ints(v[1]) if len(v) > 1 and v[1] is not None else None, a, len(n.output))
+    if op == "Slice":
+        return [slice_(v[0], ints(v[1]), ints(v[2]), ints(v[3]) if len(v) > 3 else None, ints(v[4]) if len(v) > 4 else None)]
+    if op == "MaxPool":
+        return [max_pool(v[0], a)]
+    if op == "GlobalAveragePool":
+        return [v[0].mean(dim=tuple(range(2, v[0].dim())), keepdim=True)]
+    if op == "ReduceMean":
+        axes = ints(v[1]) if len(v) > 1 and v[1] is not None else a.get("axes")
+        return [v[0].mean(dim=tuple(axes), keepdim=bool(a.get("keepdims", 1)))]
+    if op == "Reshape":
+        return [reshape(v[0], ints(v[1]))]
+    if op == "Transpose":
+        return [v[0].permute(*a["perm"])]
+    if op == "Softmax":
+        return [torch.softmax(v[0], a.get("axis", -1))]
+    if op == "Resize":
+        scales = v[2] if len(v) > 2 and v[2] is not None and v[2].numel() else None
+        if a.get("mode", b"nearest") not in (b"nearest", "nearest") or scales is None:
+            raise ValueError("only nearest Resize by scales is interpreted")
+        return [F.interpolate(v[0], scale_factor=[float(s) for s in scales[2:]], mode="nearest")]
+    raise ValueError(f"op {op} ('{n.name}') is not interpreted; recovery cannot train this model")
+
+
+class Graph(torch.nn.Module):
+    """An ONNX graph as a torch module: Conv weights and biases become parameters."""
+
+    def __init__(self, model, trainable=True):
+        super().__init__()
+        g = model.graph
+        self.nodes = list(g.node)
+        self.input = [i.name for i in g.input if i.name not in {t.name for t in g.initializer}][0]
+        conv_params = {i for n in self.nodes if n.op_type == "Conv" for i in n.input[1:]}
+        self.params = torch.nn.ParameterDict()
+        self.key = {}
+        self.consts = {}
+        for t in g.initializer:
+            arr = numpy_helper.to_array(t)
+            if trainable and t.name in conv_params and arr.dtype == np.float32:
+                k = f"p{len(self.params)}"
+                self.params[k] = torch.nn.Parameter(torch.from_numpy(arr.copy()))
+                self.key[t.name] = k
+            else:
+                self.consts[t.name] = torch.from_numpy(arr.copy())
+        for n in self.nodes:
+            if n.op_type == "Constant":
+                self.consts[n.output[0]] = torch.from_numpy(numpy_helper.to_array(n.attribute[0].t).copy())
+
+    def to_device(self, dev):
+        self.consts = {k: v.to(dev) for k, v in self.consts.items()}
+        return self.to(dev)
+
+    def value(self, name, env):
+        if name == "":
+            return None
+        if name in self.key:
+            return self.params[self.key[name]]
+        if name in self.consts:
+            return self.consts[name]
+        return env[name]
+
+    def forward(self, x, wanted):
+        """The values named in `wanted`, computing only what they need."""
+        env = {self.input: x}
+        need = set(wanted)
+        todo = []
+        for n in reversed(self.nodes):
+            if any(o in need for o in n.output):
+                todo.append(n)
+                need.update(i for i in n.input if i)
+        for n in reversed(todo):
+            if n.op_type == "Constant":
+                continue
+            for o, val in zip(n.output, run_node(n, [self.value(i, env) for i in n.input])):
+                env[o] = val
+        return [env[w] for w in wanted]
+
+    def write_back(self, model):
+        """The trained parameters into `model`'s initializers (same names, shapes, order)."""
+        for t in model.graph.initializer:
+            if t.name in self.key:
+                arr = self.params[self.key[t.name]].detach().cpu().numpy().astype(np.float32)
+                t.CopyFrom(numpy_helper.from_array(arr, t.name))
+
+
+def head_loss(s, t, spec):
+    """Distillation loss of one head convolution's output (student s, teacher t: [B, C, H, W])."""
+    kind = spec["kind"]
+    if kind == "v5":
+        na, no = spec["anchors"], spec["outputs"]
+        s, t = s.view(s.shape[0], na, no, *s.shape[2:]), t.view(t.shape[0], na, no, *t.shape[2:])
+        obj = torch.sigmoid(t[:, :, 4:5])
+        box = (obj * (torch.sigmoid(s[:, :, :4]) - torch.sigmoid(t[:, :, :4])) ** 2).sum() / obj.sum().clamp(min=1) / 4
+        return box * 20.0 + soft_bce(s[:, :, 4:], t[:, :, 4:])
+    if kind == "v8cls":
+        return soft_bce(s, t)
+    if kind == "v8box":
+        r = spec["reg_max"]
+        b, _, h, w = s.shape
+        ls = torch.log_softmax(s.view(b, 4, r, h, w), 2)
+        pt = torch.softmax(t.view(b, 4, r, h, w), 2)
+        kl = (pt * (torch.log(pt.clamp(min=1e-12)) - ls)).sum(2).mean(1, keepdim=True)  # [b, 1, h, w]
+        wgt = spec["weight"] if spec.get("weight") is not None else torch.ones_like(kl)
+        return (kl * wgt).sum() / wgt.sum().clamp(min=1)
+    raise ValueError(kind)
+
+
+def soft_bce(s, t):
+    """BCE against the teacher's probabilities minus its entropy: a KL, zero when they agree."""
+    p = torch.sigmoid(t)
+    return (F.binary_cross_entropy_with_logits(s, p, reduction="none") - F.binary_cross_entropy_with_logits(t, p, reduction="none")).mean() * 10.0
+
+
+def feature_loss(s, t, keep):
+    """MSE of a student feature against the teacher's kept channels, on the teacher's scale."""
+    if keep is not None:
+        t = t[:, keep]
+    return ((s - t) ** 2).mean() / t.var().clamp(min=1e-6)
+
+
+def total_loss(ss, ts, heads, features=()):
+    n = len(heads)
+    total = sum(feature_loss(s, t, f["keep"]) for s, t, f in zip(ss[n:], ts[n:], features))
+    ss, ts = ss[:n], ts[:n]
+    for s, t, spec in zip(ss, ts, heads):
+        if spec["kind"] == "v8box":
+            cls = [tt for tt, sp in zip(ts, heads) if sp["kind"] == "v8cls" and tt.shape[2:] == t.shape[2:]]
+            spec = dict(spec, weight=torch.sigmoid(cls[0]).amax(1, keepdim=True) if cls else None)
+        total = total + head_loss(s, t, spec)
+    return total
+
+
+def ort_teacher(path, names):
+    """On the CPU the teacher runs on ONNX Runtime (twice as fast as torch there): a callable
+    like Graph's, returning the named values as tensors."""
+    import onnxruntime as ort
+
+    m = onnx.load(path)
+    # Only the head values, for any batch size (the decode after them fixes a batch of 1).
+    del m.graph.output[:]
+    m.graph.output.extend(onnx.ValueInfoProto(name=n) for n in names)
+    del m.graph.value_info[:]
+    need, keep = set(names), []
+    for n in reversed(m.graph.node):
+        if any(o in need for o in n.output):
+            keep.append(n)
+            need.update(n.input)
+    del m.graph.node[:]
+    m.graph.node.extend(reversed(keep))
+    for i in m.graph.input:
+        i.type.tensor_type.shape.dim[0].dim_param = "batch"
+    so = ort.SessionOptions()
+    so.log_severity_level = 3  # the cut leaves the decode's constants unused: not worth a warning
+    sess = ort.InferenceSession(m.SerializeToString(), so, providers=["CPUExecutionProvider"])
+    image = [i.name for i in sess.get_inputs()][0]
+    return lambda x, wanted: [torch.from_numpy(v) for v in sess.run(wanted, {image: x.cpu().numpy()})]
+
+
+def augment(x, gen):
+    """Fresh photometric and geometric jitter each batch: flips, gain, offset, noise."""
+    b = x.shape[0]
+    flip = torch.rand(b, generator=gen) < 0.5
+    x = torch.where(flip.view(b, 1, 1, 1).to(x.device), x.flip(-1), x)
+    gain = (0.85 + 0.3 * torch.rand(b, 1, 1, 1, generator=gen)).to(x.device)
+    offset = (0.06 * torch.rand(b, 1, 1, 1, generator=gen) - 0.03).to(x.device)
+    noise = 0.004 * torch.randn(x.shape, generator=gen).to(x.device)
+    return (x * gain + offset + noise).clamp(0, 1)
+
+
+def train(cfg):
+    dev = torch.device(cfg.get("device") or ("cuda" if torch.cuda.is_available() else "cpu"))
+    torch.set_num_threads(max(1, os.cpu_count() or 1))
+    torch.manual_seed(cfg["seed"])
+    gen = torch.Generator().manual_seed(cfg["seed"])
+    student_model = onnx.load(cfg["student"])
+    student = Graph(student_model).to_device(dev)
+    heads, features = cfg["heads"], cfg.get("features", [])
+    names = [h["value"] for h in heads] + [f["value"] for f in features]
+    teacher = ort_teacher(cfg["teacher"], names) if dev.type == "cpu" else Graph(onnx.load(cfg["teacher"]), trainable=False).to_device(dev).eval()
+    frames = torch.from_numpy(np.load(cfg["frames"])).to(dev)
+    held = torch.from_numpy(np.load(cfg["held_out"])).to(dev)
+    batch, n = cfg["batch"], len(frames)
+    per_epoch = max(1, n // batch)
+
+    def held_loss():
+        with torch.no_grad():
+            tot = 0.0
+            for i in range(0, len(held), batch):
+                x = held[i:i + batch]
+                tot += float(total_loss(student(x, names), teacher(x, names), heads, features)) * len(x)
+            return tot / len(held)
+
+    opt = torch.optim.Adam(student.parameters(), lr=cfg["lr"])
+    start, before = time.time(), held_loss()
+    emit({"event": "start", "device": str(dev), "parameters": sum(p.numel() for p in student.parameters()), "held_out_loss": before, "frames": n})
+    most = cfg["epochs"] * per_epoch
+    steps, step, seen, curve = most, 0, 0, []
+    budget = cfg["minutes"] * 60
+    steady = None  # (time, step) after the first steps, which pay for allocation and autotuning
+    epoch = 0
+    while step < steps:
+        perm = torch.randperm(n, generator=gen)
+        tot, cnt = 0.0, 0
+        for i in range(per_epoch):
+            if step >= steps:
+                break
+            x = augment(frames[perm[i * batch:(i + 1) * batch].to(dev)], gen)
+            with torch.no_grad():
+                t = teacher(x, names)
+            loss = total_loss(student(x, names), t, heads, features)
+            # Cosine decay over the steps the budget allows (re-estimated as steps are timed).
+            for g in opt.param_groups:
+                g["lr"] = cfg["lr"] * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / steps)))
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            step, seen = step + 1, seen + len(x)
+            tot, cnt = tot + float(loss), cnt + 1
+            if step == 5:
+                steady = (time.time(), step)
+            elif steady and step % 10 == 0:
+                # The schedule's length: what the rest of the budget allows at the steady rate.
+                per_step = (time.time() - steady[0]) / (step - steady[1])
+                left = budget - (time.time() - start)
+                steps = min(most, max(step + 1, step + int(left / per_step)))
+                emit({"event": "step", "step": step, "steps": steps, "loss": float(loss)})
+        epoch += 1
+        curve.append(tot / max(cnt, 1))
+        emit({"event": "epoch", "epoch": epoch, "loss": curve[-1], "step": step, "steps": steps})
+    seconds = time.time() - start
+    after = held_loss()
+    student.write_back(student_model)
+    onnx.save(student_model, cfg["out"])
+    emit({"event": "done", "held_out_loss_before": before, "held_out_loss_after": after, "loss_per_epoch": curve, "epochs": epoch,
+          "steps": step, "seconds": seconds, "frames_per_second": seen / max(seconds, 1e-9), "device": str(dev),
+          "torch": torch.__version__})
+
+
+def check(model_path, frames_path):
+    """Every node output of the model by the interpreter against ONNX Runtime, on the frames."""
+    import onnxruntime as ort
+
+    m = onnx.load(model_path)
+    outs = [o for n in m.graph.node for o in n.output if o]
+    exposed = onnx.load(model_path)
+    have = {o.name for o in exposed.graph.output}
+    for o in outs:
+        if o not in have:
+            exposed.graph.output.append(onnx.ValueInfoProto(name=o))
+    so = ort.SessionOptions()
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+    sess = ort.InferenceSession(exposed.SerializeToString(), so, providers=["CPUExecutionProvider"])
+    g = Graph(m, trainable=False)
+    x = np.load(frames_path)[:2]
+    worst = {}
+    for i in range(len(x)):
+        ref = dict(zip([o.name for o in sess.get_outputs()], sess.run(None, {g.input: x[i:i + 1]})))
+        with torch.no_grad():
+            got = g(torch.from_numpy(x[i:i + 1]), outs)
+        for n in m.graph.node:
+            for o in n.output:
+                if not o or o not in ref:
+                    continue
+                r, v = ref[o].astype(np.float64), got[outs.index(o)].numpy().astype(np.float64)
+                if r.shape != v.shape:
+                    worst[n.op_type] = max(worst.get(n.op_type, 0.0), float("inf"))
+                    continue
+                # Error on the value's own scale, floored at 1: a sigmoid's near-zero outputs
+                # differ by ORT's approximation (~1e-6), not by a wrong op.
+                err = float(np.abs(r - v).max() / max(np.abs(r).max(), 1.0))
+                worst[n.op_type] = max(worst.get(n.op_type, 0.0), err)
+    print(json.dumps({"ops": worst}))
+
+
+def emit(obj):
+    print(json.dumps(obj), flush=True)
+
+
+if __name__ == "__main__":
+    if sys.argv[1] == "train":
+        with open(sys.argv[2]) as f:
+            train(json.load(f))
+    elif sys.argv[1] == "check":
+        check(sys.argv[2], sys.argv[3])
+    else:
+        sys.exit(f"usage: {sys.argv[0]} train CONFIG.json | check MODEL.onnx FRAMES.npy")

@@ -1,0 +1,68 @@
+//! The cache's Python environments for the work Rust hands to Python: RKNN-Toolkit2 (its own
+//! pins) and PyTorch for training. One venv serves both: the toolkit already needs torch, and
+//! a second multi-GB install would double CI's set-up time.
+
+use anyhow::{anyhow, bail, Context, Result};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// What the toolkit needs beside itself (its own pins: newer torch, numpy, onnx or protobuf
+/// break its import or its ONNX loader). torch 2.4 and onnxruntime 1.19 also serve the
+/// recovery worker.
+const TOOLKIT_PINS: &[&str] = &[
+    "rknn-toolkit2==2.5.0",
+    "torch<=2.4",
+    "numpy<=1.26.4",
+    "onnx<=1.18",
+    "onnxruntime<=1.19",
+    "protobuf<=4.25.4",
+    "opencv-python-headless<4.11",
+];
+const STAMP: &str = ".installed-rknn-toolkit2-2.5.0";
+
+/// The toolkit venv's Python, installing it on first use (`PDI_RKNN_PYTHON` overrides).
+pub fn toolkit_python() -> Result<PathBuf> {
+    if let Some(p) = std::env::var_os("PDI_RKNN_PYTHON") {
+        return Ok(PathBuf::from(p));
+    }
+    let venv = cache()?.join("rknn-env");
+    let python = venv.join("bin/python");
+    if venv.join(STAMP).exists() {
+        return Ok(python);
+    }
+    let imports = |p: &Path| Command::new(p).args(["-c", "import rknn.api"]).output().is_ok_and(|o| o.status.success());
+    if !(python.exists() && imports(&python)) {
+        eprintln!("installing rknn-toolkit2 2.5.0 and torch into {} (first use: ~6 min, ~6 GB)", venv.display());
+        let base = std::env::var_os("PDI_RKNN_BASE_PYTHON").map(PathBuf::from).unwrap_or_else(|| PathBuf::from("python3.11"));
+        let run = |cmd: &mut Command, what: &str| -> Result<()> {
+            let s = cmd.status().with_context(|| format!("{what}: cannot start it"))?;
+            if !s.success() {
+                bail!("{what} failed ({s})");
+            }
+            Ok(())
+        };
+        run(Command::new(&base).args(["-m", "venv"]).arg(&venv), "creating the rknn-toolkit2 venv (it needs Python 3.11: install python3.11 or set PDI_RKNN_BASE_PYTHON)")?;
+        run(Command::new(venv.join("bin/pip")).args(["install", "-q", "--disable-pip-version-check"]).args(TOOLKIT_PINS), "pip install rknn-toolkit2==2.5.0")?;
+        if !imports(&python) {
+            bail!("rknn-toolkit2 installed into {} but does not import; delete that folder and retry", venv.display());
+        }
+    }
+    std::fs::write(venv.join(STAMP), b"")?;
+    Ok(python)
+}
+
+/// A Python with torch, onnx and onnxruntime for training workers: `PDI_TORCH_PYTHON`, or the
+/// toolkit venv (installed on first use).
+pub fn torch_python() -> Result<PathBuf> {
+    match std::env::var_os("PDI_TORCH_PYTHON") {
+        Some(p) => Ok(PathBuf::from(p)),
+        None => toolkit_python(),
+    }
+}
+
+fn cache() -> Result<PathBuf> {
+    std::env::var_os("PDI_CACHE")
+        .map(PathBuf::from)
+        .or_else(|| std::env::var_os("HOME").map(|h| Path::new(&h).join(".cache/pdi-compile")))
+        .ok_or_else(|| anyhow!("set PDI_CACHE or HOME: Python environments are installed into a cache folder"))
+}

@@ -1,0 +1,76 @@
+//! Recovery by distillation: the torch interpreter agrees with ONNX Runtime op by op, and the
+//! `recover` pass brings a pruned model closer to the unpruned one without touching its graph.
+//! Needs the cache's torch venv: `pdi_compile::pyenv` installs it on first use (never skips).
+
+mod common;
+use common::*;
+use pdi_compile::tensor::Tensor;
+
+fn frames(shape: [usize; 4], n: usize) -> Vec<Tensor> {
+    let mut rng = Lcg(7);
+    (0..n).map(|_| Tensor::f32(shape.to_vec(), (0..shape.iter().product()).map(|_| rng.next_f32()).collect())).collect()
+}
+
+fn compile(model: &str, recipe: &str, out: &std::path::Path) -> serde_json::Value {
+    let r = cli(&["compile", model, "--pipeline", recipe, "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap(), "--json"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    serde_json::from_str(&r.stdout).unwrap()
+}
+
+const LOSSLESS: &str = "strip-recon, bind-psf, fold-constants, fold-psf-gates, fold-bn, resize-to-deconv, dce";
+
+/// Every op the compiler emits for both heads, pruned or not, computed by the worker's torch
+/// interpreter within 1e-4 of ONNX Runtime (on each value's scale).
+#[test]
+fn the_interpreter_matches_onnx_runtime_op_by_op() {
+    let dir = tempfile::tempdir().unwrap();
+    let recipe = dir.path().join("pruned.yaml");
+    std::fs::write(&recipe, format!("name: t\npasses: [{LOSSLESS}, {{prune: {{ratio: 0.5, compensate: none}}}}, cleanup]\n")).unwrap();
+    for (model, recipe) in [("models/trained/pdinet_v5_w0.25_trained.onnx", recipe.to_str().unwrap()), ("models/trained/pdinet_v8_w0.25_trained.onnx", "passes/detect-f32.yaml")] {
+        let out = dir.path().join(model.replace('/', "_"));
+        compile(model, recipe, &out);
+        let m = load(&out.join("model.onnx"));
+        let ops = pdi_compile::prune::recover::check_ops(&m, &frames([1, 1, 192, 256], 2)).unwrap();
+        println!("{model}: {ops:?}");
+        let emitted: std::collections::BTreeSet<&str> = m.graph.as_ref().unwrap().node.iter().map(|n| n.op_type.as_str()).collect();
+        assert_eq!(ops.keys().map(String::as_str).collect::<std::collections::BTreeSet<_>>(), emitted, "every emitted op is checked");
+        for (op, err) in &ops {
+            assert!(*err <= 1e-4, "{model}: {op} differs from ONNX Runtime by {err}");
+        }
+    }
+}
+
+/// A short recovery of the pruned tiny model: held-out agreement with the unpruned model gets
+/// better, the node list stays exactly what `prune` left.
+#[test]
+fn recovery_improves_agreement_and_keeps_the_nodes() {
+    let dir = tempfile::tempdir().unwrap();
+    let prune = "{prune: {ratio: 0.5, compensate: none}}";
+    let (plain, recovered) = (dir.path().join("plain.yaml"), dir.path().join("recovered.yaml"));
+    std::fs::write(&plain, format!("name: p\npasses: [{LOSSLESS}, {prune}, cleanup]\n")).unwrap();
+    std::fs::write(&recovered, format!("name: r\npasses: [{LOSSLESS}, {prune}, {{recover: {{minutes: 1.5, epochs: 6, frames: 96, batch: 8}}}}, cleanup]\n")).unwrap();
+    let model = "models/trained/pdinet_v5_tiny_trained.onnx";
+    compile(model, plain.to_str().unwrap(), &dir.path().join("plain"));
+    let report = compile(model, recovered.to_str().unwrap(), &dir.path().join("recovered"));
+    let r = &report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == "recover").unwrap()["details"];
+    println!("{}", serde_json::to_string_pretty(r).unwrap());
+    let worst = |m: &serde_json::Value| m.as_object().unwrap().iter().filter(|(k, _)| k.contains('/')).map(|(_, v)| v.as_f64().unwrap()).fold(0.0, f64::max);
+    let (before, after) = (worst(&r["output_rel_l2"]["before"]), worst(&r["output_rel_l2"]["after"]));
+    assert!(after < before, "recovery improves the worst output group: {before} -> {after}");
+    assert_eq!(r["kept"], true);
+    assert!(r["training"]["steps"].as_u64().unwrap() > 0 && r["training"]["frames_per_second"].as_f64().unwrap() > 0.0);
+    let nodes = |p: &str| load(&dir.path().join(p).join("model.onnx")).graph.unwrap().node;
+    assert_eq!(nodes("plain"), nodes("recovered"), "recovery changes weights only");
+}
+
+/// Recovery without a prune pass before it is refused with one clear line.
+#[test]
+fn recover_needs_a_prune_pass() {
+    let dir = tempfile::tempdir().unwrap();
+    let recipe = dir.path().join("r.yaml");
+    std::fs::write(&recipe, format!("name: r\npasses: [{LOSSLESS}, recover]\n")).unwrap();
+    let r = cli(&["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", dir.path().join("o").to_str().unwrap()]);
+    assert_eq!(r.code, 2, "{}", r.stderr);
+    assert!(r.stderr.contains("put a prune pass before it"), "{}", r.stderr);
+    assert!(!dir.path().join("o/model.onnx").exists(), "nothing written");
+}
