@@ -56,7 +56,7 @@ fn pruning_the_trained_model_reports_what_compensation_recovers() {
     let mut rows = Vec::new();
     for mode in ["none", "lstsq"] {
         let recipe = dir.path().join(format!("{mode}.yaml"));
-        let text = std::fs::read_to_string(repo().join("passes/detect-pruned-f32.yaml")).unwrap().replace("compensate: lstsq,", &format!("compensate: {mode},"));
+        let text = std::fs::read_to_string(repo().join("passes/detect-pruned-f32-norecover.yaml")).unwrap().replace("compensate: lstsq,", &format!("compensate: {mode},"));
         std::fs::write(&recipe, text).unwrap();
         let (report, j) = compile_and_verify(&model, recipe.to_str().unwrap(), &dir.path().join(mode), &data);
         let prune = report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == "prune").unwrap()["details"].clone();
