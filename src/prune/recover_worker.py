@@ -129,6 +129,16 @@ def run_node(n, v):
     raise ValueError(f"op {op} ('{n.name}') is not interpreted; recovery cannot train this model")
 
 
+def cone(nodes, wanted):
+    """The nodes (in order) that the values `wanted` need."""
+    need, keep = set(wanted), []
+    for n in reversed(nodes):
+        if any(o in need for o in n.output):
+            keep.append(n)
+            need.update(i for i in n.input if i)
+    return keep[::-1]
+
+
 class Graph(torch.nn.Module):
     """An ONNX graph as a torch module: Conv weights and biases become parameters."""
 
@@ -152,6 +162,7 @@ class Graph(torch.nn.Module):
         for n in self.nodes:
             if n.op_type == "Constant":
                 self.consts[n.output[0]] = torch.from_numpy(numpy_helper.to_array(n.attribute[0].t).copy())
+        self.plans = {}  # wanted values -> the nodes they need, computed once per request
 
     def to_device(self, dev):
         self.consts = {k: v.to(dev) for k, v in self.consts.items()}
@@ -169,13 +180,10 @@ class Graph(torch.nn.Module):
     def forward(self, x, wanted):
         """The values named in `wanted`, computing only what they need."""
         env = {self.input: x}
-        need = set(wanted)
-        todo = []
-        for n in reversed(self.nodes):
-            if any(o in need for o in n.output):
-                todo.append(n)
-                need.update(i for i in n.input if i)
-        for n in reversed(todo):
+        key = tuple(wanted)
+        if key not in self.plans:
+            self.plans[key] = cone(self.nodes, wanted)
+        for n in self.plans[key]:
             if n.op_type == "Constant":
                 continue
             for o, val in zip(n.output, run_node(n, [self.value(i, env) for i in n.input])):
@@ -247,13 +255,9 @@ def ort_teacher(path, names):
     del m.graph.output[:]
     m.graph.output.extend(onnx.ValueInfoProto(name=n) for n in names)
     del m.graph.value_info[:]
-    need, keep = set(names), []
-    for n in reversed(m.graph.node):
-        if any(o in need for o in n.output):
-            keep.append(n)
-            need.update(n.input)
+    keep = cone(list(m.graph.node), names)
     del m.graph.node[:]
-    m.graph.node.extend(reversed(keep))
+    m.graph.node.extend(keep)
     for i in m.graph.input:
         i.type.tensor_type.shape.dim[0].dim_param = "batch"
     so = ort.SessionOptions()
@@ -349,7 +353,8 @@ def check(model_path, frames_path):
 
     m = onnx.load(model_path)
     outs = [o for n in m.graph.node for o in n.output if o]
-    exposed = onnx.load(model_path)
+    exposed = onnx.ModelProto()
+    exposed.CopyFrom(m)
     have = {o.name for o in exposed.graph.output}
     for o in outs:
         if o not in have:
