@@ -44,6 +44,10 @@ pub enum Command {
         /// Store weights in DIR/model.onnx.data instead of one self-contained file.
         #[arg(long)]
         external_data: bool,
+        /// What the deployment needs (YAML: classes, object_px, roi, score_threshold,
+        /// max_detections): adds drop-classes / drop-strides / crop-roi before pruning.
+        #[arg(long)]
+        scene: Option<PathBuf>,
         /// Deployment target: `tract` also checks the model on tract with fixed shapes, writes
         /// an NNEF archive when it loads faster, and DIR/tract.yaml.
         #[arg(long, value_enum, default_value_t)]
@@ -249,8 +253,9 @@ pub fn run(cli: Cli) -> Result<u8> {
                 print!("{}", report.render());
             }
         }
-        Command::Compile { model, pipeline, out, psf, keep_outputs, calib, external_data, target, json } => {
-            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib, keep_outputs, ..Default::default() }, target };
+        Command::Compile { model, pipeline, out, psf, keep_outputs, calib, external_data, scene, target, json } => {
+            let scene = scene.as_deref().map(crate::scene::Scene::load).transpose()?;
+            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib, keep_outputs, scene, ..Default::default() }, target };
             let r = compile(&req)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);

@@ -51,12 +51,18 @@ pub struct CompileReport {
 
 pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
     let t = Instant::now();
-    let recipe = Recipe::load(&req.pipeline)?;
+    let mut recipe = Recipe::load(&req.pipeline)?;
+    if let Some(scene) = &req.context.scene {
+        recipe = recipe.with_scene(scene)?;
+    }
     let bytes = std::fs::read(&req.model).map_err(|e| anyhow::anyhow!("cannot read {}: {e}", req.model.display()))?;
     let loaded = onnx::load_bytes(&bytes, req.model.parent().or(Some(Path::new("."))))
         .map_err(|e| anyhow::anyhow!("{}: {e:#}", req.model.display()))?;
     let mut model = loaded.model;
     let passes = pipeline::run(&recipe, &mut model, &req.context)?;
+    if let Some(scene) = &req.context.scene {
+        crate::scene::record_post_processing(&mut model, scene)?;
+    }
     // The runner already counted before the first pass and after each one.
     let before = match passes.first() {
         Some(p) => p.before,

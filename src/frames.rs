@@ -7,6 +7,7 @@ use crate::tensor::Tensor;
 use anyhow::{anyhow, bail, Context, Result};
 use std::path::Path;
 
+#[derive(Clone)]
 pub struct Frame {
     pub name: String,
     /// [1, 1, H, W], values in [0, 1].

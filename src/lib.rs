@@ -25,6 +25,7 @@ pub mod pyenv;
 pub mod quant;
 pub mod prune;
 pub mod runtime;
+pub mod scene;
 pub mod targets;
 pub mod tensor;
 pub mod verify;

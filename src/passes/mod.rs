@@ -3,7 +3,10 @@
 
 pub mod bind_psf;
 pub mod cleanup;
+pub mod crop_roi;
 pub mod dce;
+pub mod drop_classes;
+pub mod drop_strides;
 pub mod fold_bn;
 pub mod fold_constants;
 pub mod fold_psf_gates;
@@ -20,7 +23,7 @@ use crate::pipeline::{Pass, PassSpec};
 use anyhow::{anyhow, bail, Result};
 
 /// Every pass this build knows, by the name recipes use.
-pub const KNOWN: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "prune", "recover", "quantize", "fp16", "rknn-legalize", "rknn-hybrid"];
+pub const KNOWN: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "drop-classes", "drop-strides", "crop-roi", "prune", "recover", "quantize", "fp16", "rknn-legalize", "rknn-hybrid"];
 
 pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
     Ok(match spec.name.as_str() {
@@ -32,6 +35,9 @@ pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
         "resize-to-deconv" => Box::new(resize_to_deconv::ResizeToDeconv),
         "dce" => Box::new(dce::Dce),
         "cleanup" => Box::new(cleanup::Cleanup),
+        "drop-classes" => Box::new(drop_classes::DropClasses),
+        "drop-strides" => Box::new(drop_strides::DropStrides { options: options(spec)? }),
+        "crop-roi" => Box::new(crop_roi::CropRoi),
         "prune" => Box::new(prune::Prune { options: options(spec)? }),
         "recover" => Box::new(recover::Recover { options: options(spec)? }),
         "fp16" => Box::new(to_fp16::ToFp16 { options: options(spec)? }),

@@ -132,7 +132,16 @@ impl Pass for Prune {
         let rewritten = apply::apply(pg, &analysis, &kept, opset)?;
         super::dce::eliminate(pg)?;
         check_outputs(&original, model)?;
-        cx.teacher.replace(Some(Teacher { model: original.clone(), kept: kept.clone() }));
+        // A scene specialization before pruning already left the full model as the teacher:
+        // recovery then distills from it, through both cuts.
+        let teacher = match cx.teacher.take() {
+            Some(mut t) => {
+                t.compose(&kept);
+                t
+            }
+            None => Teacher { model: original.clone(), kept: kept.clone(), window: None },
+        };
+        cx.teacher.replace(Some(teacher));
         clock.lap("rewrite");
 
         let (fit, held_out): (Vec<_>, Vec<_>) = feeds.iter().enumerate().partition(|(i, _)| feeds.len() < 4 || i % 4 != 3);
@@ -150,9 +159,9 @@ impl Pass for Prune {
         let mut compensation_kept = o.compensate != Mode::None;
         if !held_out.is_empty() {
             let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-            let result = output_errors(&original, model, &held_out, threads)?;
+            let result = output_errors(&original, model, &held_out, threads, None)?;
             if let Some(u) = uncompensated {
-                let before = output_errors(&original, &u, &held_out, threads)?;
+                let before = output_errors(&original, &u, &held_out, threads, None)?;
                 // Compensation stays only where it helps on frames it never saw: the worst
                 // output group (boxes, objectness, classes judged apart) must improve.
                 compensation_kept = worst_rel_l2(&result) < worst_rel_l2(&before);
@@ -216,7 +225,7 @@ fn allocate(original: &ModelProto, analysis: &crate::analysis::channels::Channel
             if keep >= g.classes.len() || levels.last().is_some_and(|l| l.keep == keep) {
                 continue;
             }
-            let damage = worst_rel_l2(&output_errors(original, &m, feeds, threads)?);
+            let damage = worst_rel_l2(&output_errors(original, &m, feeds, threads, None)?);
             levels.push(Level { ratio, keep, damage, macs_saved: base.saturating_sub(counts(&m)?.macs) });
         }
         if !levels.is_empty() {

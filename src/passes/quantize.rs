@@ -163,7 +163,7 @@ impl Pass for Quantize {
         layers.retain(|l| current.quantized.contains(&alone.node_of_value[&l.value]));
         layers.sort_by(|a, b| b.accumulated.map_or(b.alone.rel_l2, |e| e.rel_l2).total_cmp(&a.accumulated.map_or(a.alone.rel_l2, |e| e.rel_l2)));
         clock.lap("accumulated_errors");
-        let outputs = attribution::output_errors(&float, &quantized, &held_out, threads)?;
+        let outputs = attribution::output_errors(&float, &quantized, &held_out, threads, None)?;
         if emitted.biases_clamped > 0 {
             warnings.push(format!("{} int32 bias values were clamped (input x weight scale too small for the bias)", emitted.biases_clamped));
         }
@@ -263,7 +263,7 @@ struct Mixed {
 fn mixed_precision(m: &MixedPrecision, emit_with: &dyn Fn(&Plan) -> Result<(ModelProto, crate::quant::qdq::Emitted)>) -> Result<Mixed> {
     let mut ranked: Vec<&LayerError> = m.layers.iter().collect();
     ranked.sort_by(|a, b| b.alone.rel_l2.total_cmp(&a.alone.rel_l2));
-    let mut worst = worst_rel_l2(&attribution::output_errors(m.float, m.quantized, m.frames, m.threads)?);
+    let mut worst = worst_rel_l2(&attribution::output_errors(m.float, m.quantized, m.frames, m.threads, None)?);
     let mut names = m.keep.clone();
     let mut out = Mixed::default();
     for layer in ranked.into_iter().take(m.max_layers) {
@@ -274,7 +274,7 @@ fn mixed_precision(m: &MixedPrecision, emit_with: &dyn Fn(&Plan) -> Result<(Mode
         with.insert(layer.node.clone());
         let candidate_plan = plan(m.graph, &with);
         let candidate = emit_with(&candidate_plan)?;
-        let after = worst_rel_l2(&attribution::output_errors(m.float, &candidate.0, m.frames, m.threads)?);
+        let after = worst_rel_l2(&attribution::output_errors(m.float, &candidate.0, m.frames, m.threads, None)?);
         let step = serde_json::json!({"node": layer.node, "op": layer.op, "alone_rel_l2": layer.alone.rel_l2, "output_rel_l2_before": worst, "output_rel_l2_after": after});
         // A float layer costs speed: keep it only where it clearly helps.
         if after < worst * MIN_IMPROVEMENT {

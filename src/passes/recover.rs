@@ -18,6 +18,7 @@ use super::prune::by_name;
 use crate::pipeline::{Pass, PassContext, Teacher};
 use crate::prune::recover::{distill, Options as Distill};
 use crate::quant::attribution::{output_errors, worst_rel_l2};
+use crate::scene::compare::SceneView;
 use anyhow::{anyhow, bail, Result};
 
 #[derive(serde::Deserialize)]
@@ -59,8 +60,9 @@ impl Pass for Recover {
         if o.frames < o.batch || o.batch == 0 || !(o.lr > 0.0) || !(o.minutes > 0.0) {
             bail!("recover needs frames >= batch > 0, lr > 0 and minutes > 0");
         }
-        let Teacher { model: teacher, kept } = cx.teacher.borrow().clone().ok_or_else(|| anyhow!("recover distills a pruned model from the unpruned one: put a prune pass before it in the recipe"))?;
-        let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+        let Teacher { model: teacher, kept, window } = cx.teacher.borrow().clone().ok_or_else(|| anyhow!("recover distills a pruned or scene-specialized model from the model before: put a prune pass (or a scene) before it in the recipe"))?;
+        // Frames are the teacher's: with a scene ROI the student sees their crop.
+        let g = teacher.graph.as_ref().ok_or_else(|| anyhow!("teacher has no graph"))?;
         let graph = Graph::build(g)?;
         let inf = infer(&graph);
         let (feeds, source) = image_feeds(&graph, &inf, cx.calib.as_deref(), o.frames + HELD_OUT, o.seed.wrapping_add(17))?;
@@ -71,11 +73,13 @@ impl Pass for Recover {
         let (train, check) = feeds.split_at(feeds.len() - held);
         let image = |f: &Vec<(String, crate::tensor::Tensor)>| f[0].1.clone();
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-        let before = output_errors(&teacher, model, check, threads)?;
+        let view = SceneView::of_teacher(model, &teacher)?;
+        let errors = |m: &ModelProto| output_errors(&teacher, m, check, threads, view.as_ref());
+        let before = errors(model)?;
         let mut trained = model.clone();
-        let opts = Distill { minutes: o.minutes, epochs: o.epochs, lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone() };
+        let opts = Distill { minutes: o.minutes, epochs: o.epochs, lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone(), window };
         let outcome = distill(&mut trained, &teacher, &kept, &train.iter().map(image).collect::<Vec<_>>(), &check.iter().map(image).collect::<Vec<_>>(), &opts)?;
-        let after = output_errors(&teacher, &trained, check, threads)?;
+        let after = errors(&trained)?;
         let kept = worst_rel_l2(&after) < worst_rel_l2(&before);
         if kept {
             *model = trained;

@@ -24,16 +24,34 @@ pub struct PassContext {
     pub calib: Option<PathBuf>,
     /// Outputs `strip-recon` keeps (`--keep-outputs`), overriding recognition.
     pub keep_outputs: Option<Vec<String>>,
+    /// What the deployment needs (`--scene`): read by the scene passes.
+    pub scene: Option<crate::scene::Scene>,
     /// The model before the last structural change: `prune` leaves the unpruned model here,
     /// `recover` distills the pruned one from it.
     pub teacher: std::cell::RefCell<Option<Teacher>>,
 }
 
-/// An unpruned model and, for every value that lost channels, the positions it kept.
+/// A model before pruning or scene specialization and, for every value that lost channels,
+/// the positions it kept; with a scene ROI, the window of the teacher's frame the student sees.
 #[derive(Clone, Debug)]
 pub struct Teacher {
     pub model: ModelProto,
     pub kept: std::collections::HashMap<String, Vec<usize>>,
+    pub window: Option<crate::scene::Roi>,
+}
+
+impl Teacher {
+    /// Records a further channel cut: `kept` indexes the current model's channels, which
+    /// index the teacher's through the earlier cut.
+    pub fn compose(&mut self, kept: &std::collections::HashMap<String, Vec<usize>>) {
+        for (v, ks) in kept {
+            let through = match self.kept.get(v) {
+                Some(earlier) => ks.iter().map(|&k| earlier[k]).collect(),
+                None => ks.clone(),
+            };
+            self.kept.insert(v.clone(), through);
+        }
+    }
 }
 
 pub trait Pass {

@@ -69,6 +69,45 @@ impl Recipe {
     }
 }
 
+/// Passes that change nothing a scene specialization depends on: the scene passes go after
+/// the longest run of these that opens a recipe (constants and gates folded), before
+/// pruning, quantization and target legalization, which then work on the smaller model.
+const BEFORE_SCENE: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce"];
+
+/// Recovery after a crop when the recipe has none. Measured on the width-0.25 models
+/// (README, scene table).
+const ROI_RECOVERY: &str = "{minutes: 8}";
+
+impl Recipe {
+    /// The recipe with the passes `scene` asks for (drop-classes, drop-strides, crop-roi, in
+    /// that order) inserted where they belong, and a recovery after a crop.
+    pub fn with_scene(&self, scene: &crate::scene::Scene) -> Result<Recipe> {
+        let wanted: Vec<&str> = [("drop-classes", scene.classes.is_some()), ("drop-strides", scene.object_px.is_some()), ("crop-roi", scene.roi.is_some())]
+            .into_iter()
+            .filter(|p| p.1)
+            .map(|p| p.0)
+            .collect();
+        // A recipe that places scene passes itself keeps its placement.
+        if self.passes.iter().any(|p| ["drop-classes", "drop-strides", "crop-roi"].contains(&p.name.as_str())) {
+            return Ok(self.clone());
+        }
+        let at = self.passes.iter().position(|p| !BEFORE_SCENE.contains(&p.name.as_str())).unwrap_or(self.passes.len());
+        if !self.passes[..at].iter().any(|p| p.name == "fold-constants") && !wanted.is_empty() {
+            bail!("scene specialization needs constant decode shapes: the pipeline must run fold-constants before {}", self.passes.get(at).map_or("its end", |p| p.name.as_str()));
+        }
+        let mut inserted: Vec<PassSpec> = wanted.iter().map(|n| PassSpec { name: n.to_string(), options: yaml_serde::Value::Null }).collect();
+        // A crop loses the context outside the ROI (the SPPF's pooling and the bridge's
+        // global average see the whole frame): the cropped model is distilled from the full
+        // one on full frames, unless the recipe recovers after pruning anyway.
+        if scene.roi.is_some() && !self.passes.iter().any(|p| p.name == "recover") {
+            inserted.push(PassSpec { name: "recover".into(), options: yaml_serde::from_str(ROI_RECOVERY)? });
+        }
+        let mut out = self.clone();
+        out.passes.splice(at..at, inserted);
+        Ok(out)
+    }
+}
+
 fn pass_spec(item: &yaml_serde::Value) -> Result<PassSpec> {
     match item {
         yaml_serde::Value::String(s) => Ok(PassSpec { name: s.clone(), options: yaml_serde::Value::Null }),

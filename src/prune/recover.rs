@@ -25,6 +25,8 @@ pub struct Options {
     pub seed: u64,
     /// `cuda`, `cpu`, or empty for CUDA when torch sees a GPU.
     pub device: String,
+    /// The teacher's frames are full frames; the student sees this window of them.
+    pub window: Option<crate::scene::Roi>,
 }
 
 /// What one distillation did, from the worker's own account.
@@ -81,7 +83,13 @@ fn feature_specs(model: &ModelProto, kept: &HashMap<String, Vec<usize>>) -> Resu
 /// Trains `student`'s weights towards `teacher` on `frames` (each [1, 1, H, W]), measuring on
 /// `held_out`; writes them into `student`.
 pub fn distill(student: &mut ModelProto, teacher: &ModelProto, kept: &HashMap<String, Vec<usize>>, frames: &[Tensor], held_out: &[Tensor], o: &Options) -> Result<Outcome> {
-    let heads = head_specs(student)?;
+    let mut heads = head_specs(student)?;
+    // Rows a scene dropped from a head convolution: the teacher's kept rows.
+    for h in &mut heads {
+        if let Some(k) = h["value"].as_str().and_then(|v| kept.get(v)) {
+            h["keep"] = serde_json::json!(k);
+        }
+    }
     let features = feature_specs(student, kept)?;
     let work = tempfile::tempdir()?;
     let dir = work.path();
@@ -92,7 +100,7 @@ pub fn distill(student: &mut ModelProto, teacher: &ModelProto, kept: &HashMap<St
     let config = serde_json::json!({
         "student": dir.join("student.onnx"), "teacher": dir.join("teacher.onnx"), "out": dir.join("trained.onnx"),
         "frames": dir.join("frames.npy"), "held_out": dir.join("held_out.npy"), "heads": heads, "features": features,
-        "minutes": o.minutes, "epochs": o.epochs, "lr": o.lr, "batch": o.batch, "seed": o.seed,
+        "window": o.window, "minutes": o.minutes, "epochs": o.epochs, "lr": o.lr, "batch": o.batch, "seed": o.seed,
         "device": if o.device.is_empty() { serde_json::Value::Null } else { o.device.clone().into() },
     });
     std::fs::write(dir.join("config.json"), serde_json::to_vec(&config)?)?;

@@ -235,6 +235,7 @@ def feature_loss(s, t, keep):
 
 def total_loss(ss, ts, heads, features=()):
     n = len(heads)
+    ts = [t[:, h["keep"]] if h.get("keep") is not None else t for t, h in zip(ts[:n], heads)] + list(ts[n:])
     total = sum(feature_loss(s, t, f["keep"]) for s, t, f in zip(ss[n:], ts[n:], features))
     ss, ts = ss[:n], ts[:n]
     for s, t, spec in zip(ss, ts, heads):
@@ -267,6 +268,22 @@ def ort_teacher(path, names):
     return lambda x, wanted: [torch.from_numpy(v) for v in sess.run(wanted, {image: x.cpu().numpy()})]
 
 
+def crop(x, window):
+    """The window (input pixels) of a [B, C, H, W] value, on the value's own grid: a feature
+    at stride s keeps the rows and columns the window's pixels cover."""
+    if window is None:
+        return x
+    sy, sx = window["frame_h"] // x.shape[-2], window["frame_w"] // x.shape[-1]
+    return x[..., window["y"] // sy:(window["y"] + window["h"]) // sy, window["x"] // sx:(window["x"] + window["w"]) // sx]
+
+
+def cropped_teacher(teacher, window):
+    """The teacher on full frames, its values cropped to the student's window."""
+    if window is None:
+        return teacher
+    return lambda x, wanted: [crop(v, window) for v in teacher(x, wanted)]
+
+
 def augment(x, gen):
     """Fresh photometric and geometric jitter each batch: flips, gain, offset, noise."""
     b = x.shape[0]
@@ -288,7 +305,12 @@ def train(cfg):
     heads, features = cfg["heads"], cfg.get("features", [])
     names = [h["value"] for h in heads] + [f["value"] for f in features]
     teacher = ort_teacher(cfg["teacher"], names) if dev.type == "cpu" else Graph(onnx.load(cfg["teacher"]), trainable=False).to_device(dev).eval()
+    window = cfg.get("window")
     frames = torch.from_numpy(np.load(cfg["frames"])).to(dev)
+    if window is not None:
+        window = dict(window, frame_h=frames.shape[-2], frame_w=frames.shape[-1])
+    teacher = cropped_teacher(teacher, window)
+    student_in = (lambda x: crop(x, window))
     held = torch.from_numpy(np.load(cfg["held_out"])).to(dev)
     batch, n = cfg["batch"], len(frames)
     per_epoch = max(1, n // batch)
@@ -298,7 +320,7 @@ def train(cfg):
             tot = 0.0
             for i in range(0, len(held), batch):
                 x = held[i:i + batch]
-                tot += float(total_loss(student(x, names), teacher(x, names), heads, features)) * len(x)
+                tot += float(total_loss(student(student_in(x), names), teacher(x, names), heads, features)) * len(x)
             return tot / len(held)
 
     opt = torch.optim.Adam(student.parameters(), lr=cfg["lr"])
@@ -318,7 +340,7 @@ def train(cfg):
             x = augment(frames[perm[i * batch:(i + 1) * batch].to(dev)], gen)
             with torch.no_grad():
                 t = teacher(x, names)
-            loss = total_loss(student(x, names), t, heads, features)
+            loss = total_loss(student(student_in(x), names), t, heads, features)
             # Cosine decay over the steps the budget allows (re-estimated as steps are timed).
             for g in opt.param_groups:
                 g["lr"] = cfg["lr"] * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / steps)))

@@ -5,6 +5,7 @@
 //! "Alone" errors come from one run of a single model: the float graph plus, beside every
 //! quantized node, a clone reading fake-quantized copies of its float inputs.
 
+use crate::scene::compare::SceneView;
 use super::params::{quantize_weights, ActivationType, QParams};
 use super::plan::Plan;
 use super::qdq::add_qdq;
@@ -140,7 +141,9 @@ pub struct OutputError {
 
 /// Errors of `candidate`'s outputs against `reference`'s, split by channel group where the
 /// output is a decoded detection tensor, so that scores are judged apart from coordinates.
-pub fn output_errors(reference: &ModelProto, candidate: &ModelProto, feeds: &Feeds, threads: usize) -> Result<Vec<OutputError>> {
+/// With `scene`, the candidate is scene-specialized: it sees the crop of each frame and its
+/// outputs are compared with the reference's gathered into its layout.
+pub fn output_errors(reference: &ModelProto, candidate: &ModelProto, feeds: &Feeds, threads: usize, scene: Option<&SceneView>) -> Result<Vec<OutputError>> {
     let g = reference.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
     let graph = Graph::build(g)?;
     let inf = infer(&graph);
@@ -150,7 +153,13 @@ pub fn output_errors(reference: &ModelProto, candidate: &ModelProto, feeds: &Fee
     let mut c = OrtRuntime::with_options(candidate, GraphOptimizationLevel::Level3, threads)?;
     let mut sums: BTreeMap<(usize, Option<&'static str>), ErrorSums> = BTreeMap::new();
     for feed in feeds {
-        let (ro, co) = (r.run(feed)?, c.run(feed)?);
+        let (ro, co) = match scene {
+            None => (r.run(feed)?, c.run(feed)?),
+            Some(s) => {
+                let ro = r.run(feed)?.into_iter().map(|(n, t)| Ok((n.clone(), if head.output.as_deref() == Some(n.as_str()) { s.gather(&t)? } else { t }))).collect::<Result<Vec<_>>>()?;
+                (ro, c.run(&s.crop_feed(feed)?)?)
+            }
+        };
         for (k, ((name, a), (_, b))) in ro.iter().zip(&co).enumerate() {
             let (x, y) = (a.data.to_f64(), b.data.to_f64());
             sums.entry((k, None)).or_default().add(x.iter().copied(), y.iter().copied());

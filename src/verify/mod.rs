@@ -20,6 +20,7 @@ use crate::metrics::tensor_error::{compare, TensorError};
 use crate::onnx::proto::ModelProto;
 use crate::optics::blur_map::BlurMap;
 use crate::runtime::{self, Engine, Runtime};
+use crate::scene::compare::SceneView;
 use crate::tensor::Tensor;
 use anyhow::{anyhow, bail, Result};
 use gate::{Check, Gate};
@@ -79,6 +80,13 @@ pub struct DetectionReport {
     /// Against the frames' labels, when every frame has them.
     pub reference_vs_labels: Option<MapResult>,
     pub candidate_vs_labels: Option<MapResult>,
+    /// For a scene-specialized candidate: what was compared.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scene: Option<String>,
+    /// For a scene-specialized candidate: whether its detections scoring at least
+    /// AGREEMENT_CONF are the reference's (restricted to the scene), bit for bit.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub identical: Option<bool>,
 }
 
 #[derive(Serialize)]
@@ -142,7 +150,9 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
     }
     let reference = side(&req.reference, "reference")?;
     let candidate = side(&req.candidate, "candidate")?;
-    if reference.shape != candidate.shape {
+    let head = crate::inspect::inspect(&reference.model)?.head;
+    let scene = SceneView::new(&candidate.model, head.kind, head.classes.unwrap_or(0), reference.shape)?;
+    if scene.is_none() && reference.shape != candidate.shape {
         bail!("reference takes {:?} frames, candidate {:?}", reference.shape, candidate.shape);
     }
     let (h, w) = reference.shape;
@@ -151,10 +161,12 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
         None => (frames::synthetic(req.random.max(1), h, w, req.seed), format!("{} synthetic frames, seed {}", req.random.max(1), req.seed)),
     };
     let psf = req.psf.as_deref().map(blur_input).transpose()?;
-    let head = {
-        let r = crate::inspect::inspect(&reference.model)?;
-        r.head
+    // A specialized candidate decodes its own classes; its detections are compared on the scene.
+    let cand_head = match &scene {
+        Some(_) => crate::inspect::inspect(&candidate.model)?.head,
+        None => head.clone(),
     };
+    let crop = |f: &Frame| -> Result<Frame> { scene.as_ref().map_or(Ok(f.clone()), |s| s.crop(f)) };
     let cand_outputs: Vec<String> = candidate.model.graph.as_ref().unwrap().output.iter().map(|o| o.name.clone()).collect();
     let compared: Vec<String> = reference.model.graph.as_ref().unwrap().output.iter().map(|o| o.name.clone()).filter(|n| cand_outputs.contains(n)).collect();
     if compared.is_empty() {
@@ -162,7 +174,7 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
     }
 
     let first_ref = feeds(&reference, &frames[0], psf.as_ref())?;
-    let first_cand = feeds(&candidate, &frames[0], psf.as_ref())?;
+    let first_cand = feeds(&candidate, &crop(&frames[0])?, psf.as_ref())?;
     let mut ref_rt = runtime::load(Engine::Ort, &reference.model, &first_ref)?;
     let mut cand_rt = runtime::load(Engine::Ort, &candidate.model, &first_cand)?;
     let mut tract_rt = if req.tract { Some(runtime::load(Engine::Tract, &candidate.model, &first_cand)?) } else { None };
@@ -173,8 +185,12 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
     let (mut ref_dets, mut cand_dets, mut tract_dets) = (Vec::new(), Vec::new(), Vec::new());
     let decodable = head.kind != HeadKind::Raw && head.output.as_ref().is_some_and(|o| compared.contains(o));
     for f in &frames {
-        let r = ref_rt.run(&feeds(&reference, f, psf.as_ref())?)?;
-        let cf = feeds(&candidate, f, psf.as_ref())?;
+        let full = ref_rt.run(&feeds(&reference, f, psf.as_ref())?)?;
+        let r = match (&scene, &head.output) {
+            (Some(s), Some(det)) => full.iter().map(|(n, t)| Ok((n.clone(), if n == det { s.gather(t)? } else { t.clone() }))).collect::<Result<Vec<_>>>()?,
+            _ => full.clone(),
+        };
+        let cf = feeds(&candidate, &crop(f)?, psf.as_ref())?;
         let c = cand_rt.run(&cf)?;
         let t = tract_rt.as_mut().map(|rt| rt.run(&cf)).transpose()?;
         for (k, name) in compared.iter().enumerate() {
@@ -191,10 +207,21 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
             }
         }
         if decodable {
-            ref_dets.push(detections(&head, &r)?);
-            cand_dets.push(detections(&head, &c)?);
-            if let Some(t) = &t {
-                tract_dets.push(detections(&head, t)?);
+            match &scene {
+                Some(s) => {
+                    ref_dets.push(s.reference_detections(detections(&head, &full)?));
+                    cand_dets.push(s.candidate_detections(detections(&cand_head, &c)?));
+                    if let Some(t) = &t {
+                        tract_dets.push(s.candidate_detections(detections(&cand_head, t)?));
+                    }
+                }
+                None => {
+                    ref_dets.push(detections(&head, &r)?);
+                    cand_dets.push(detections(&head, &c)?);
+                    if let Some(t) = &t {
+                        tract_dets.push(detections(&head, t)?);
+                    }
+                }
             }
         }
     }
@@ -219,7 +246,16 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
         outputs.push(OutputReport { name: name.clone(), ort: compare(&r, &c), tract, tract_vs_reference, groups });
     }
 
-    let detection = decodable.then(|| detection_report(&head, &frames, &ref_dets, &cand_dets, &tract_dets));
+    let detection = match &scene {
+        None => decodable.then(|| detection_report(&head, &frames, &ref_dets, &cand_dets, &tract_dets)),
+        Some(s) => decodable.then(|| {
+            let scene_frames: Vec<Frame> = frames.iter().map(|f| Frame { labels: f.labels.as_ref().map(|l| s.labels(l)), ..f.clone() }).collect();
+            let mut d = detection_report(&cand_head, &scene_frames, &ref_dets, &cand_dets, &tract_dets);
+            d.scene = Some(s.describe());
+            d.identical = Some(same_detections(&ref_dets, &cand_dets));
+            d
+        }),
+    };
 
     let latency = if req.latency_runs == 0 {
         Vec::new()
@@ -293,7 +329,15 @@ fn detection_report(head: &Head, frames: &[Frame], reference: &[Vec<Detection>],
         agreement_tract: (!tract.is_empty()).then(|| coco_map(&truth, tract, classes)),
         reference_vs_labels: labels.as_ref().map(|l| coco_map(l, reference, classes)),
         candidate_vs_labels: labels.as_ref().map(|l| coco_map(l, candidate, classes)),
+        scene: None,
+        identical: None,
     }
+}
+
+/// Whether two runs kept the same confident detections, bit for bit.
+fn same_detections(a: &[Vec<Detection>], b: &[Vec<Detection>]) -> bool {
+    let confident = |ds: &Vec<Detection>| -> Vec<Detection> { ds.iter().filter(|d| d.score >= AGREEMENT_CONF).copied().collect() };
+    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| confident(x) == confident(y))
 }
 
 fn checks(g: &Gate, outputs: &[OutputReport], det: Option<&DetectionReport>, latency_ratio: Option<f64>) -> Vec<Check> {

@@ -1,0 +1,240 @@
+//! `drop-strides`: detection levels that cannot produce an object of the scene's size go,
+//! with every node only they feed.
+//!
+//! Needs: `--scene` with `object_px: [smallest, largest]` (an object's larger side, input
+//! pixels), a recognized YOLOv5 or YOLOv8 decode (after fold-constants).
+//! Does: decides per level (stride) whether it can produce such an object:
+//! - YOLOv5, by its anchors and the training assignment: a level learns an object only when
+//!   both sides are within a factor `anchor_t` of one of its anchors (4.0, YOLOv5's default
+//!   and `models/pdinet/loss_v5.py`'s); a level none of whose anchors admits sides within
+//!   the scene's range was never taught such objects;
+//! - YOLOv8, by the DFL range: a side spans at most 2 (reg_max − 1) strides.
+//!
+//! Where the rules cannot exclude a level (YOLOv8's coarse levels may be assigned small
+//! objects), it is measured: the model runs on calibration frames and a level whose share of
+//! the final in-range detections (after NMS, score ≥ `score_threshold`) is at most
+//! `max_share` goes too. The level Concats lose the dropped levels' candidates, and dead
+//! code elimination takes their head convolutions and the neck path only they need (in
+//! YOLOv5/v8 necks the bottom-up path to the coarsest scale; the backbone's deep features stay
+//! where the top-down path needs them).
+//! Guarantees: the kept levels' candidates are bit-identical to the original's (their
+//! cone is unchanged). Reports: what each level covers, the measurement, what went.
+
+use crate::analysis::channels::detector_convolutions;
+use crate::analysis::head::{self, HeadKind};
+use crate::calib_frames::image_feeds;
+use crate::detect::{decode, nms::nms, Detection};
+use crate::ir::{infer, Graph};
+use crate::onnx::proto::ModelProto;
+use crate::onnx::tensor_proto::to_tensor;
+use crate::pipeline::{Pass, PassContext};
+use crate::runtime::{ort_runtime::OrtRuntime, Runtime};
+use crate::scene::geometry::{self, Cut, Level};
+use crate::scene::{Roi, SceneMeta};
+use crate::tensor::Tensor;
+use anyhow::{anyhow, bail, Result};
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Options {
+    /// YOLOv5's anchor-matching ratio in training (hyp `anchor_t`).
+    pub anchor_t: f32,
+    /// Measure levels the rules keep on calibration frames.
+    pub measure: bool,
+    /// Calibration frames for the measurement. 32 frames of the synthetic scenes hold about
+    /// 300 objects: enough that a level carrying 1% of them shows up.
+    pub frames: usize,
+    /// A level with at most this share of the in-range detections is dropped: 0.5% keeps the
+    /// measured agreement on in-range detections near 0.995 at worst.
+    pub max_share: f64,
+    pub seed: u64,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options { anchor_t: 4.0, measure: true, frames: 32, max_share: 0.005, seed: 0 }
+    }
+}
+
+pub struct DropStrides {
+    pub options: Options,
+}
+
+/// Detections at or above this score count in the measurement (YOLO's deployment default;
+/// the scene's `score_threshold` overrides it).
+const DEFAULT_SCORE: f32 = 0.25;
+
+impl Pass for DropStrides {
+    fn name(&self) -> &'static str {
+        "drop-strides"
+    }
+
+    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+        let Some(scene) = cx.scene.as_ref().filter(|s| s.object_px.is_some()) else {
+            return Ok(serde_json::json!({ "skipped": "the scene gives no object_px" }));
+        };
+        let [lo, hi] = scene.object_px.expect("checked");
+        let g = super::graph_mut(model)?;
+        let (_, [h, w], levels) = geometry::levels(g)?;
+        let (head, rules) = {
+            let graph = Graph::build(g)?;
+            let inf = infer(&graph);
+            let outputs: Vec<String> = g.output.iter().map(|o| o.name.clone()).collect();
+            let head = head::detect(&graph, &inf, &outputs);
+            let rules: Vec<(bool, String)> = match head.kind {
+                HeadKind::Yolov5Anchor => v5_anchors(&graph, &levels)?.iter().map(|a| v5_rule(a, lo, hi, self.options.anchor_t)).collect(),
+                HeadKind::Yolov8Dfl => levels.iter().map(|l| v8_rule(l, head.reg_max.unwrap_or(16), lo)).collect(),
+                HeadKind::Raw => bail!("drop-strides needs a YOLOv5 or YOLOv8 decode in the graph; this head is raw"),
+            };
+            (head, rules)
+        };
+        let shares = if self.options.measure {
+            let threshold = scene.score_threshold.unwrap_or(DEFAULT_SCORE);
+            Some(measure(model, cx, &head, &levels, [lo, hi], threshold, &self.options)?)
+        } else {
+            None
+        };
+        let keep: Vec<bool> = rules
+            .iter()
+            .enumerate()
+            .map(|(i, (can, _))| *can && shares.as_ref().is_none_or(|(s, _)| s[i] > self.options.max_share))
+            .collect();
+        if !keep.iter().any(|&k| k) {
+            bail!("object_px [{lo}, {hi}] leaves no detection level: every stride is either unable to produce such objects or produced none on the calibration frames");
+        }
+        let report_levels: Vec<serde_json::Value> = levels
+            .iter()
+            .enumerate()
+            .map(|(i, l)| {
+                serde_json::json!({
+                    "stride": l.stride,
+                    "covers": rules[i].1,
+                    "in_range_share": shares.as_ref().map(|(s, _)| s[i]),
+                    "kept": keep[i],
+                    "why": if !rules[i].0 { "cannot produce an object in object_px" } else if !keep[i] { "measured share at or below max_share" } else { "kept" },
+                })
+            })
+            .collect();
+        let m = model;
+        let mut meta = SceneMeta::begin(m)?;
+        let cut = geometry::apply(super::graph_mut(m)?, &Cut { window: Roi { x: 0, y: 0, w, h }, keep: keep.clone() })?;
+        meta.object_px = Some([lo, hi]);
+        meta.strides = Some(levels.iter().zip(&keep).filter(|(_, &k)| k).map(|(l, _)| l.stride).collect());
+        meta.write(m)?;
+        crate::scene::set_metadata(m, "stride", &format!("{:?}", meta.strides.as_ref().expect("set")));
+        Ok(serde_json::json!({
+            "object_px": [lo, hi],
+            "levels": report_levels,
+            "measured_on": shares.map(|(_, src)| src),
+            "concats_cut": cut.concats,
+            "constants_cut": cut.constants,
+        }))
+    }
+}
+
+/// Each level's anchors (w, h in pixels): the decode multiplies (2 sigmoid)^2 by a constant
+/// [1, A, 1, 1, 2] downstream of the level's head convolution.
+fn v5_anchors(g: &Graph, levels: &[Level]) -> Result<Vec<Vec<[f32; 2]>>> {
+    let inf = infer(g);
+    let convs = detector_convolutions(g);
+    levels
+        .iter()
+        .map(|l| {
+            let conv = convs
+                .iter()
+                .copied()
+                .find(|&c| inf.shape(&g.node(c).output[0]).is_some_and(|s| s.len() == 4 && s[2] == l.height && s[3] == l.width))
+                .ok_or_else(|| anyhow!("no head convolution at stride {}", l.stride))?;
+            let mut seen = std::collections::HashSet::new();
+            let mut stack = vec![conv];
+            while let Some(i) = stack.pop() {
+                if !seen.insert(i) {
+                    continue;
+                }
+                let n = g.node(i);
+                if n.op_type == "Mul" {
+                    for v in &n.input {
+                        let Some(t) = g.initializers.get(v.as_str()).and_then(|t| to_tensor(t).ok()) else { continue };
+                        if let ([1, a, 1, 1, 2], Some(x)) = (t.shape.as_slice(), t.as_f32()) {
+                            return Ok((0..*a).map(|i| [x[2 * i], x[2 * i + 1]]).collect());
+                        }
+                    }
+                }
+                if n.op_type != "Concat" {
+                    stack.extend(n.output.iter().flat_map(|o| g.consumers_of(o).iter().copied()));
+                }
+            }
+            bail!("no anchor constant [1, A, 1, 1, 2] after the stride-{} head convolution", l.stride)
+        })
+        .collect()
+}
+
+/// A YOLOv5 level can learn an object whose sides are within `t` of an anchor's: it is
+/// needed when some anchor admits both sides ≤ `hi` with the larger one ≥ `lo`.
+fn v5_rule(anchors: &[[f32; 2]], lo: f32, hi: f32, t: f32) -> (bool, String) {
+    let can = anchors.iter().any(|&[aw, ah]| aw / t < hi && ah / t < hi && (aw * t > lo || ah * t > lo));
+    let min = anchors.iter().map(|a| a[0].min(a[1]) / t).fold(f32::MAX, f32::min);
+    let max = anchors.iter().map(|a| a[0].max(a[1]) * t).fold(0f32, f32::max);
+    (can, format!("sides {min:.1}..{max:.1} px (anchors {anchors:?} within ×{t})"))
+}
+
+/// A YOLOv8 level's box sides span at most 2 (reg_max − 1) strides.
+fn v8_rule(l: &Level, reg_max: usize, lo: f32) -> (bool, String) {
+    let max = 2.0 * (reg_max as f32 - 1.0) * l.stride as f32;
+    (lo <= max, format!("sides up to {max:.0} px (2 × {} bins × stride {})", reg_max - 1, l.stride))
+}
+
+/// Each level's share of the final detections whose larger side lies in `[lo, hi]`.
+fn measure(model: &ModelProto, cx: &PassContext, head: &head::Head, levels: &[Level], [lo, hi]: [f32; 2], threshold: f32, o: &Options) -> Result<(Vec<f64>, String)> {
+    let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+    let (feeds, source) = {
+        let graph = Graph::build(g)?;
+        image_feeds(&graph, &infer(&graph), cx.calib.as_deref(), o.frames, o.seed)?
+    };
+    let output = head.output.clone().ok_or_else(|| anyhow!("the detection output has no static 3-D shape"))?;
+    let mut rt = OrtRuntime::new(model)?;
+    let iou = if head.kind == HeadKind::Yolov8Dfl { 0.7 } else { 0.6 };
+    let mut counts = vec![0usize; levels.len()];
+    for f in &feeds {
+        let outs = rt.run(f)?;
+        let t = &outs.iter().find(|(n, _)| *n == output).ok_or_else(|| anyhow!("output '{output}' missing"))?.1;
+        // Candidates tagged by level through their rank in the output, then one NMS over all.
+        let per_level = split_levels(head.kind, t, levels)?;
+        let mut all: Vec<(Detection, usize)> = Vec::new();
+        for (li, part) in per_level.iter().enumerate() {
+            all.extend(decode::candidates(head.kind, part, threshold)?.into_iter().map(|d| (d, li)));
+        }
+        let kept = nms(all.iter().map(|p| p.0).collect(), iou, 300);
+        for d in kept {
+            let side = (d.bbox[2] - d.bbox[0]).max(d.bbox[3] - d.bbox[1]);
+            if side >= lo && side <= hi {
+                if let Some((_, li)) = all.iter().find(|(c, _)| *c == d) {
+                    counts[*li] += 1;
+                }
+            }
+        }
+    }
+    let total = counts.iter().sum::<usize>().max(1) as f64;
+    Ok((counts.iter().map(|&c| c as f64 / total).collect(), format!("{source}; {} in-range detections", counts.iter().sum::<usize>())))
+}
+
+/// The decoded output cut into its levels' candidates.
+fn split_levels(kind: HeadKind, t: &Tensor, levels: &[Level]) -> Result<Vec<Tensor>> {
+    let cells: usize = levels.iter().map(|l| l.height * l.width).sum();
+    let axis = if kind == HeadKind::Yolov5Anchor { 1 } else { 2 };
+    let n = *t.shape.get(axis).ok_or_else(|| anyhow!("detection output has shape {:?}", t.shape))?;
+    if n % cells != 0 {
+        bail!("detection output has {n} candidates; the levels have {cells} cells");
+    }
+    let k = n / cells;
+    let mut at = 0;
+    levels
+        .iter()
+        .map(|l| {
+            let m = k * l.height * l.width;
+            let idx: Vec<usize> = (at..at + m).collect();
+            at += m;
+            t.select(axis, &idx).ok_or_else(|| anyhow!("cannot split the detection output"))
+        })
+        .collect()
+}
