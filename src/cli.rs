@@ -21,6 +21,16 @@ pub enum Command {
         /// Machine-readable report (fields documented in README.md).
         #[arg(long)]
         json: bool,
+        /// Preview what a scene file (classes, object_px, roi) would remove: MACs,
+        /// parameters, outputs, each key alone and all together.
+        #[arg(long)]
+        scene: Option<PathBuf>,
+        /// Camera blur map, for a model whose blur map is a graph input (with --scene).
+        #[arg(long)]
+        psf: Option<PathBuf>,
+        /// Calibration frames for drop-strides' measurement (with --scene).
+        #[arg(long)]
+        calib: Option<PathBuf>,
     },
     /// Run a pass pipeline and write DIR/model.onnx, DIR/report.json and DIR/manifest.yaml.
     Compile {
@@ -243,7 +253,16 @@ pub const EXIT_GATE_FAILED: u8 = 1;
 /// Runs the command; returns the exit code (0, or 1 for a failed gate).
 pub fn run(cli: Cli) -> Result<u8> {
     match cli.command {
-        Command::Inspect { model, json } => {
+        Command::Inspect { model, json, scene: Some(scene), psf, calib } => {
+            let loaded = crate::onnx::load(&model)?;
+            let p = crate::scene::preview::preview(&loaded.model, &crate::scene::Scene::load(&scene)?, psf, calib)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&p)?);
+            } else {
+                print!("{}", p.render());
+            }
+        }
+        Command::Inspect { model, json, scene: None, .. } => {
             let loaded = crate::onnx::load(&model)?;
             let mut report = crate::inspect::inspect(&loaded.model)?;
             report.warnings.splice(0..0, loaded.warnings);

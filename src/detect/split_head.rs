@@ -27,6 +27,14 @@ pub struct HeadLayout {
     pub reg_max: Option<usize>,
     /// Finest stride first, the order of the original decode's rows.
     pub levels: Vec<Level>,
+    /// Where the input's top-left pixel lies in the frame (x, y): a model cropped to a scene's
+    /// ROI decodes boxes in frame coordinates.
+    #[serde(default, skip_serializing_if = "is_origin")]
+    pub offset: [f32; 2],
+}
+
+fn is_origin(o: &[f32; 2]) -> bool {
+    *o == [0.0, 0.0]
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -94,16 +102,17 @@ fn level_data<'a>(layout: &HeadLayout, l: &Level, out: &'a HashMap<String, Tenso
 }
 
 /// YOLOv5 box of anchor `a` at cell (x, y): sigmoid outputs → (cx, cy, w, h) in pixels.
-fn v5_box(l: &Level, d: &LevelData, a: usize, x: usize, y: usize) -> [f32; 4] {
+fn v5_box(l: &Level, offset: [f32; 2], d: &LevelData, a: usize, x: usize, y: usize) -> [f32; 4] {
     let cells = l.height * l.width;
     let at = |j: usize| d.boxes[(a * 4 + j) * cells + y * l.width + x];
     let s = l.stride as f32;
     let [aw, ah] = l.anchors[a];
-    [(at(0) * 2.0 - 0.5 + x as f32) * s, (at(1) * 2.0 - 0.5 + y as f32) * s, (at(2) * 2.0).powi(2) * aw, (at(3) * 2.0).powi(2) * ah]
+    let [ox, oy] = offset;
+    [(at(0) * 2.0 - 0.5 + x as f32) * s + ox, (at(1) * 2.0 - 0.5 + y as f32) * s + oy, (at(2) * 2.0).powi(2) * aw, (at(3) * 2.0).powi(2) * ah]
 }
 
 /// YOLOv8 box at cell (x, y): softmax-expected distance per side → (cx, cy, w, h) in pixels.
-fn v8_box(l: &Level, d: &LevelData, reg_max: usize, x: usize, y: usize) -> [f32; 4] {
+fn v8_box(l: &Level, offset: [f32; 2], d: &LevelData, reg_max: usize, x: usize, y: usize) -> [f32; 4] {
     let cells = l.height * l.width;
     let cell = y * l.width + x;
     let mut dist = [0f32; 4];
@@ -121,7 +130,8 @@ fn v8_box(l: &Level, d: &LevelData, reg_max: usize, x: usize, y: usize) -> [f32;
     let (ax, ay) = (x as f32 + 0.5, y as f32 + 0.5);
     let (x1, y1, x2, y2) = (ax - dist[0], ay - dist[1], ax + dist[2], ay + dist[3]);
     let s = l.stride as f32;
-    [(x1 + x2) / 2.0 * s, (y1 + y2) / 2.0 * s, (x2 - x1) * s, (y2 - y1) * s]
+    let [ox, oy] = offset;
+    [(x1 + x2) / 2.0 * s + ox, (y1 + y2) / 2.0 * s + oy, (x2 - x1) * s, (y2 - y1) * s]
 }
 
 /// The original model's decoded output, rebuilt from the split tensors.
@@ -138,7 +148,7 @@ pub fn decode_dense(layout: &HeadLayout, out: &HashMap<String, Tensor>) -> Resul
                 for a in 0..l.anchors.len() {
                     for y in 0..l.height {
                         for x in 0..l.width {
-                            rows.extend(v5_box(l, &d, a, x, y));
+                            rows.extend(v5_box(l, layout.offset, &d, a, x, y));
                             rows.extend((0..1 + nc).map(|k| d.scores[(a * (1 + nc) + k) * cells + y * l.width + x]));
                         }
                     }
@@ -155,7 +165,7 @@ pub fn decode_dense(layout: &HeadLayout, out: &HashMap<String, Tensor>) -> Resul
                 let cells = l.height * l.width;
                 for y in 0..l.height {
                     for x in 0..l.width {
-                        let b = v8_box(l, &d, reg_max, x, y);
+                        let b = v8_box(l, layout.offset, &d, reg_max, x, y);
                         for (c, v) in b.into_iter().chain((0..nc).map(|k| d.scores[k * cells + y * l.width + x])).enumerate() {
                             cols[c * n + i] = v;
                         }
@@ -204,7 +214,7 @@ pub fn detect(layout: &HeadLayout, out: &HashMap<String, Tensor>, conf: f32, iou
                                 continue;
                             }
                             let (class, p) = best((0..nc).map(|k| score(1 + k)));
-                            push(v5_box(l, &d, a, x, y), class, obj * p);
+                            push(v5_box(l, layout.offset, &d, a, x, y), class, obj * p);
                         }
                     }
                     HeadKind::Yolov8Dfl => {
@@ -215,7 +225,7 @@ pub fn detect(layout: &HeadLayout, out: &HashMap<String, Tensor>, conf: f32, iou
                         }
                         let (class, p) = best((0..nc).map(|k| d.scores[k * cells + cell]));
                         if p > conf {
-                            push(v8_box(l, &d, layout.reg_max.unwrap_or(16), x, y), class, p);
+                            push(v8_box(l, layout.offset, &d, layout.reg_max.unwrap_or(16), x, y), class, p);
                         }
                     }
                     HeadKind::Raw => bail!("a raw head has no layout to decode"),
@@ -273,7 +283,7 @@ mod tests {
                 let anchors = if kind == HeadKind::Yolov5Anchor { vec![[10.0, 13.0], [16.0, 30.0]] } else { vec![] };
                 levels.push(Level { stride, height: h, width: w, anchors, boxes: names.0, scores: names.1, score_sum });
             }
-            let layout = HeadLayout { kind, classes: nc, reg_max: (kind == HeadKind::Yolov8Dfl).then_some(16), levels };
+            let layout = HeadLayout { kind, classes: nc, reg_max: (kind == HeadKind::Yolov8Dfl).then_some(16), levels, offset: [0.0, 0.0] };
             let dense = decode_dense(&layout, &out).unwrap();
             for conf in [0.05, 0.25, 0.6] {
                 let expected = nms(candidates(kind, &dense, conf).unwrap(), 0.45, 300);

@@ -89,12 +89,12 @@ impl Pass for DropClasses {
         }
         crate::scene::geometry::follow_shapes(g, &old)?;
         let rows_kept: std::collections::HashMap<String, Vec<usize>> = rows_of.into_iter().collect();
-        match cx.teacher.borrow_mut().as_mut() {
+        let mut teacher = cx.teacher.borrow_mut();
+        match teacher.as_mut() {
             Some(t) => t.compose(&rows_kept),
-            None => {
-                cx.teacher.replace(Some(Teacher { model: before, kept: rows_kept, window: None }));
-            }
+            None => *teacher = Some(Teacher { model: before, kept: rows_kept, window: None }),
         }
+        drop(teacher);
 
         let kept_names: Vec<String> = kept.iter().map(|&i| names[i].clone()).collect();
         set_metadata(model, "names", &names_metadata(&kept_names));

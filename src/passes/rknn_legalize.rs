@@ -196,9 +196,20 @@ fn zero_logits(levels: &BTreeMap<usize, Vec<HeadConv>>) -> Vec<(String, Tensor)>
 fn probe_layout(tail: &mut TractRuntime, zeros: &[(String, Tensor)], kind: HeadKind, classes: usize, reg_max: Option<usize>, levels: &BTreeMap<usize, Vec<HeadConv>>) -> Result<HeadLayout> {
     let out = run_tail(tail, zeros)?;
     let v = out.as_f32().ok_or_else(|| anyhow!("the decode's output is not float32"))?;
-    let mut layout = HeadLayout { kind, classes, reg_max, levels: Vec::new() };
+    let mut layout = HeadLayout { kind, classes, reg_max, levels: Vec::new(), offset: [0.0, 0.0] };
     let mut row = 0;
     let near = |a: f32, b: f32| (a - b).abs() <= 1e-3 * b.abs().max(1.0);
+    // The first candidate's centre is half a stride in from the input's corner, unless the
+    // model is cropped to a scene's ROI: then its grids carry the ROI's corner.
+    let first = *levels.keys().next().ok_or_else(|| anyhow!("no head levels"))? as f32;
+    let [ox, oy] = match kind {
+        HeadKind::Yolov5Anchor => [v[0] - 0.5 * first, v[1] - 0.5 * first],
+        _ => {
+            let n = out.shape.get(2).copied().unwrap_or(1);
+            [v[0] - 0.5 * first, v[n] - 0.5 * first]
+        }
+    };
+    layout.offset = [ox.round(), oy.round()];
     for (&stride, convs) in levels {
         let c = &convs[0];
         let (h, w, s) = (c.height, c.width, stride as f32);
@@ -220,7 +231,7 @@ fn probe_layout(tail: &mut TractRuntime, zeros: &[(String, Tensor)], kind: HeadK
                     level.anchors.push([r[2], r[3]]);
                     for (y, x) in (0..h).flat_map(|y| (0..w).map(move |x| (y, x))) {
                         let r = rows(row + a * h * w + y * w + x);
-                        if !(near(r[0], (x as f32 + 0.5) * s) && near(r[1], (y as f32 + 0.5) * s) && near(r[2], level.anchors[a][0]) && near(r[3], level.anchors[a][1])) {
+                        if !(near(r[0], (x as f32 + 0.5) * s + layout.offset[0]) && near(r[1], (y as f32 + 0.5) * s + layout.offset[1]) && near(r[2], level.anchors[a][0]) && near(r[3], level.anchors[a][1])) {
                             bail!("the YOLOv5 decode's rows at stride {stride} are not in (anchor, y, x) order; cannot split this head");
                         }
                     }
@@ -236,7 +247,7 @@ fn probe_layout(tail: &mut TractRuntime, zeros: &[(String, Tensor)], kind: HeadK
                 for (y, x) in (0..h).flat_map(|y| (0..w).map(move |x| (y, x))) {
                     let col = |c: usize| v[c * n + row + y * w + x];
                     let span = (r - 1) as f32 * s;
-                    if !(near(col(0), (x as f32 + 0.5) * s) && near(col(1), (y as f32 + 0.5) * s) && near(col(2), span) && near(col(3), span)) {
+                    if !(near(col(0), (x as f32 + 0.5) * s + layout.offset[0]) && near(col(1), (y as f32 + 0.5) * s + layout.offset[1]) && near(col(2), span) && near(col(3), span)) {
                         bail!("the YOLOv8 decode's columns at stride {stride} are not in (y, x) order; cannot split this head");
                     }
                 }

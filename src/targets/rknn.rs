@@ -34,6 +34,34 @@ pub struct RknnConfig {
     pub quantization: RknnQuantization,
     pub outputs: Vec<String>,
     pub head_layout: HeadLayout,
+    /// What the application's post-processing applies (a scene's settings, else YOLO's
+    /// deployment defaults); `rknn-convert` matches detections with them.
+    #[serde(default)]
+    pub post_processing: PostProcessing,
+}
+
+#[derive(Serialize, Deserialize, Clone, Debug)]
+pub struct PostProcessing {
+    pub score_threshold: f32,
+    pub nms_iou: f32,
+    pub max_detections: usize,
+}
+
+impl Default for PostProcessing {
+    fn default() -> Self {
+        PostProcessing { score_threshold: 0.25, nms_iou: 0.45, max_detections: 300 }
+    }
+}
+
+impl PostProcessing {
+    /// The defaults, overridden by what the model's scene says.
+    pub fn of(model: &crate::onnx::proto::ModelProto) -> Result<PostProcessing> {
+        let d = PostProcessing::default();
+        Ok(match crate::scene::SceneMeta::read(model)? {
+            Some(s) => PostProcessing { score_threshold: s.score_threshold.unwrap_or(d.score_threshold), max_detections: s.max_detections.unwrap_or(d.max_detections), ..d },
+            None => d,
+        })
+    }
 }
 
 #[derive(Serialize, Deserialize, Clone, Debug)]
@@ -110,6 +138,7 @@ pub fn write(dir: &Path, model: &ModelProto, calib: Option<&Path>) -> Result<Rkn
         },
         outputs: layout.output_names(),
         head_layout: layout,
+        post_processing: PostProcessing::of(model)?,
     };
     write_atomic(&dir.join("rknn.yaml"), yaml_serde::to_string(&config)?.as_bytes())?;
     Ok(config)

@@ -26,9 +26,6 @@ use std::process::Command;
 use std::time::Instant;
 
 const WORKER: &str = include_str!("rknn_worker.py");
-/// Post-processing thresholds for the detection agreement (YOLO's deployment defaults).
-const CONF: f32 = 0.25;
-const NMS_IOU: f32 = 0.45;
 /// Seed of the validation frames; the calibration set uses seed 0.
 const VALIDATION_SEED: u64 = 1_000_003;
 
@@ -66,6 +63,8 @@ pub struct ConvertReport {
     pub detections_ort: usize,
     pub detections_rknn: usize,
     pub detections_matched: usize,
+    /// The score threshold detections were matched at (rknn.yaml's post-processing).
+    pub score_threshold: f32,
     pub min_cosine: f64,
     pub failures: Vec<String>,
     pub passed: bool,
@@ -149,8 +148,9 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
             }
             simulated.insert(name.clone(), Tensor::f32(r.shape.clone(), a.data));
         }
-        let (d_ort, _) = detect(layout, &reference, CONF, NMS_IOU, 300)?;
-        let (d_rknn, _) = detect(layout, &simulated, CONF, NMS_IOU, 300)?;
+        let pp = &config.post_processing;
+        let (d_ort, _) = detect(layout, &reference, pp.score_threshold, pp.nms_iou, pp.max_detections)?;
+        let (d_rknn, _) = detect(layout, &simulated, pp.score_threshold, pp.nms_iou, pp.max_detections)?;
         n_ort += d_ort.len();
         n_rknn += d_rknn.len();
         matched += count_matched(&d_ort, &d_rknn);
@@ -177,6 +177,7 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
         detections_ort: n_ort,
         detections_rknn: n_rknn,
         detections_matched: matched,
+        score_threshold: config.post_processing.score_threshold,
         min_cosine: req.min_cosine,
         passed: failures.is_empty(),
         failures,
@@ -246,7 +247,7 @@ impl ConvertReport {
             s += &format!("  {:<18} {:>9.5} {:>10.3e} {:>10.3e}\n", a.name, a.error.cosine, a.error.rel_l2, a.error.max_abs);
         }
         s += &format!("  layers: {} on the NPU ({} kept in FP16), {} on the CPU\n", self.npu_layers, self.fp16_layers.len(), self.cpu_layers.len());
-        s += &format!("  detections (conf {CONF}): ORT {}, simulator {}, matched {}\n", self.detections_ort, self.detections_rknn, self.detections_matched);
+        s += &format!("  detections (conf {}): ORT {}, simulator {}, matched {}\n", self.score_threshold, self.detections_ort, self.detections_rknn, self.detections_matched);
         s += &if self.passed { format!("  PASS (every cosine ≥ {}, nothing on the CPU)\n", self.min_cosine) } else { format!("  FAIL: {}\n", self.failures.join("; ")) };
         s
     }
