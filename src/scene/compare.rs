@@ -114,12 +114,18 @@ impl SceneView {
             .ok_or_else(|| anyhow!("the reference's detection output {:?} does not match the candidate's scene", t.shape))
     }
 
-    /// Reference detections the scene keeps, with the candidate's class indices.
+    /// The reference's decoded output with only the kept classes' columns, every candidate
+    /// kept: decoding it picks each candidate's best *kept* class, as the candidate does, while
+    /// objects on dropped levels or outside the ROI still count against the candidate.
+    pub fn kept_classes(&self, t: &Tensor) -> Result<Tensor> {
+        let axis = if self.kind == HeadKind::Yolov5Anchor { 2 } else { 1 };
+        t.select(axis, &self.channels).ok_or_else(|| anyhow!("the reference's detection output {:?} does not have the scene's classes", t.shape))
+    }
+
+    /// Reference detections (decoded from [`Self::kept_classes`], so in the candidate's class
+    /// indices) that the scene keeps.
     pub fn reference_detections(&self, ds: Vec<Detection>) -> Vec<Detection> {
-        ds.into_iter()
-            .filter(|d| self.meta.keeps(d.class, &d.bbox, self.margin))
-            .map(|d| Detection { class: self.to_candidate_class(d.class), ..d })
-            .collect()
+        ds.into_iter().filter(|d| self.meta.keeps(self.to_original_class(d.class), &d.bbox, self.margin)).collect()
     }
 
     /// Candidate detections in the scene's sizes and region (classes are the scene's already).

@@ -209,7 +209,9 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
         if decodable {
             match &scene {
                 Some(s) => {
-                    ref_dets.push(s.reference_detections(detections(&head, &full)?));
+                    let det = head.output.as_deref().unwrap_or_default();
+                    let restricted: Vec<(String, Tensor)> = full.iter().map(|(n, t)| Ok((n.clone(), if n == det { s.kept_classes(t)? } else { t.clone() }))).collect::<Result<_>>()?;
+                    ref_dets.push(s.reference_detections(detections(&head, &restricted)?));
                     cand_dets.push(s.candidate_detections(detections(&cand_head, &c)?));
                     if let Some(t) = &t {
                         tract_dets.push(s.candidate_detections(detections(&cand_head, t)?));

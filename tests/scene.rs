@@ -1,0 +1,156 @@
+//! Scene specialization on the committed trained models: drop-classes is exact, drop-strides
+//! removes a scale and keeps the in-range detections, crop-roi crops every gate map bit for
+//! bit and decodes in frame coordinates (through rknn-legalize's split head too).
+
+mod common;
+use common::*;
+use pdi_compile::onnx::tensor_proto::to_tensor;
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+
+const MODELS: [&str; 3] = ["pdinet_v5_tiny_trained.onnx", "pdinet_v5_w0.25_trained.onnx", "pdinet_v8_w0.25_trained.onnx"];
+const PSF: &str = "calib/single_lwir_blur.npy";
+
+/// 60 held-out frames of the trained models' evaluation recipe (seed 2, 256x192).
+fn frames(dir: &Path) -> PathBuf {
+    let psf = dir.join("psf");
+    let r = cli(&["psf", "simulate", "--lens", "calib/lens_single_lwir.yaml", "-o", psf.to_str().unwrap()]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let set = dir.join("eval");
+    let r = cli(&["dataset", set.to_str().unwrap(), "--psf", psf.to_str().unwrap(), "--n", "60", "--q", "90", "--seed", "2", "--min-box", "16", "--out-size", "256x192"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    set.join("degraded")
+}
+
+fn compile(model: &Path, recipe: &str, scene: Option<&Path>, out: &Path) -> Value {
+    let mut args = vec!["compile", model.to_str().unwrap(), "--pipeline", recipe, "--psf", PSF, "-o", out.to_str().unwrap(), "--json"];
+    if let Some(s) = scene {
+        args.extend(["--scene", s.to_str().unwrap()]);
+    }
+    let r = cli(&args);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    serde_json::from_str(&r.stdout).unwrap()
+}
+
+fn verify(reference: &Path, candidate: &Path, data: &Path) -> Value {
+    let r = cli(&["verify", "--reference", reference.to_str().unwrap(), "--candidate", candidate.to_str().unwrap(), "--psf", PSF, "--data", data.to_str().unwrap(), "--runs", "0", "--json"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    serde_json::from_str(&r.stdout).unwrap()
+}
+
+fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+fn pass<'a>(report: &'a Value, name: &str) -> &'a Value {
+    report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == name).unwrap_or_else(|| panic!("no {name} pass in {report}"))
+}
+
+#[test]
+fn dropping_classes_is_exact() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = frames(dir.path());
+    let scene = write(dir.path(), "classes.yaml", "classes: [Car, People]\n");
+    for m in MODELS {
+        let model = repo().join("models/trained").join(m);
+        let full = dir.path().join(format!("{m}.full"));
+        let cut = dir.path().join(format!("{m}.cut"));
+        compile(&model, "passes/detect-f32.yaml", None, &full);
+        let report = compile(&model, "passes/detect-f32.yaml", Some(&scene), &cut);
+        let p = pass(&report, "drop-classes");
+        assert_eq!(p["details"]["kept"], serde_json::json!(["Car", "People"]));
+        let (before, after) = (&p["before"], &p["after"]);
+        assert!(after["macs"].as_u64() < before["macs"].as_u64() && after["params"].as_u64() < before["params"].as_u64(), "{m}: {p}");
+        // Against the lossless compile: the same rows of the same convolutions.
+        let j = verify(&full.join("model.onnx"), &cut.join("model.onnx"), &data);
+        for g in j["outputs"][0]["groups"].as_array().unwrap() {
+            assert_eq!(g["ort"]["max_abs"].as_f64(), Some(0.0), "{m}: group {} differs", g["group"]);
+        }
+        assert_eq!(j["detection"]["identical"], true, "{m}: detections differ");
+        assert!(j["detection"]["truth_boxes"].as_u64().unwrap() > 20, "{m}: too few Car/People detections to compare");
+        // Against the original export (BatchNorm unfolded): float rounding only.
+        let j = verify(&model, &cut.join("model.onnx"), &data);
+        for g in j["outputs"][0]["groups"].as_array().unwrap() {
+            assert!(g["ort"]["rel_l2"].as_f64().unwrap() <= 1e-6, "{m}: group {} rel L2 {}", g["group"], g["ort"]["rel_l2"]);
+        }
+        println!("{m}: drop-classes MACs {} -> {}, params {} -> {}", before["macs"], after["macs"], before["params"], after["params"]);
+    }
+}
+
+#[test]
+fn dropping_strides_removes_a_scale_and_keeps_small_objects() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = frames(dir.path());
+    let scene = write(dir.path(), "size.yaml", "object_px: [0, 24]\n");
+    for m in MODELS {
+        let model = repo().join("models/trained").join(m);
+        let out = dir.path().join(m);
+        let report = compile(&model, "passes/detect-f32.yaml", Some(&scene), &out);
+        let p = pass(&report, "drop-strides");
+        let dropped: Vec<&Value> = p["details"]["levels"].as_array().unwrap().iter().filter(|l| l["kept"] == false).collect();
+        assert!(!dropped.is_empty(), "{m}: no scale dropped: {p}");
+        // The dropped scale's head convolution and the bottom-up path to it are gone.
+        assert!(p["after"]["nodes"].as_u64() < p["before"]["nodes"].as_u64());
+        let compiled = load(&out.join("model.onnx"));
+        let names: Vec<&str> = compiled.graph.as_ref().unwrap().node.iter().map(|n| n.name.as_str()).collect();
+        assert!(!names.iter().any(|n| n.contains("out5")), "{m}: the neck's stride-32 output block survived");
+        let j = verify(&model, &out.join("model.onnx"), &data);
+        let agreement = j["detection"]["agreement"]["map50_95"].as_f64().unwrap();
+        println!("{m}: dropped strides {:?}, MACs {} -> {}, agreement on 0..24 px {agreement:.4}", dropped.iter().map(|l| &l["stride"]).collect::<Vec<_>>(), p["before"]["macs"], p["after"]["macs"]);
+        assert!(agreement >= 0.99, "{m}: agreement {agreement}");
+    }
+}
+
+#[test]
+fn cropping_keeps_gate_maps_and_frame_coordinates() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = write(dir.path(), "roi.yaml", "roi: {x: 0, y: 64, w: 256, h: 128}\n");
+    // crop-roi placed by the recipe: no recovery is added, and rknn-legalize's decode check
+    // (the split head against the in-graph decode, on tract) runs on the cropped grids.
+    let recipe = write(dir.path(), "crop.yaml", "name: crop\npasses: [strip-recon, bind-psf, fold-constants, fold-psf-gates, fold-bn, dce, crop-roi, cleanup, rknn-legalize]\n");
+    let full_recipe = write(dir.path(), "full.yaml", "name: full\npasses: [strip-recon, bind-psf, fold-constants, fold-psf-gates, fold-bn, dce, cleanup, rknn-legalize]\n");
+    for m in MODELS {
+        let model = repo().join("models/trained").join(m);
+        let (full, cut) = (dir.path().join(format!("{m}.full")), dir.path().join(format!("{m}.cut")));
+        let full_report = compile(&model, full_recipe.to_str().unwrap(), None, &full);
+        let report = compile(&model, recipe.to_str().unwrap(), Some(&scene), &cut);
+        let ratio = report["after"]["macs"].as_f64().unwrap() / full_report["after"]["macs"].as_f64().unwrap();
+        assert!(ratio <= 0.70, "{m}: MACs {ratio:.3} of the full model");
+        let cropped = pass(&report, "crop-roi")["details"]["constants_cropped"].as_array().unwrap().clone();
+        let (a, b) = (load(&full.join("model.onnx")), load(&cut.join("model.onnx")));
+        let init = |m: &pdi_compile::onnx::proto::ModelProto, n: &str| m.graph.as_ref().unwrap().initializer.iter().find(|t| t.name == n).map(|t| to_tensor(t).unwrap());
+        let mut gates = 0;
+        for c in &cropped {
+            let name = c[0].as_str().unwrap();
+            let Some(f) = init(&a, name).filter(|t| t.shape.len() == 4) else { continue };
+            let c = init(&b, name).unwrap();
+            let s = 192 / f.shape[2];
+            let rows: Vec<usize> = (64 / s..192 / s).collect();
+            let want = f.select(2, &rows).unwrap();
+            assert!(want.bit_identical(&c), "{m}: gate map {name} is not the full map's crop");
+            gates += 1;
+        }
+        assert!(gates >= 1, "{m}: no gate map cropped: {cropped:?}");
+        let layout: Value = serde_json::from_str(&b.metadata_props.iter().find(|p| p.key == "pdi.head_layout").unwrap().value).unwrap();
+        assert_eq!(layout["offset"], serde_json::json!([0.0, 64.0]), "{m}: split-head decode offset");
+        let meta: Value = serde_json::from_str(&b.metadata_props.iter().find(|p| p.key == "pdi.scene").unwrap().value).unwrap();
+        assert_eq!(meta["roi"]["y"], 64);
+    }
+}
+
+#[test]
+fn bad_scenes_are_refused_with_one_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = repo().join("models/trained/pdinet_v5_tiny_trained.onnx");
+    for (text, says) in [("classes: [Boat]\n", "Boat"), ("roi: {x: 0, y: 60, w: 256, h: 128}\n", "multiples of 32"), ("object_px: [30, 10]\n", "object_px"), ("colour: red\n", "colour")] {
+        let scene = write(dir.path(), "bad.yaml", text);
+        let out = dir.path().join("out");
+        let r = cli(&["compile", model.to_str().unwrap(), "--pipeline", "passes/detect-f32.yaml", "--psf", PSF, "--scene", scene.to_str().unwrap(), "-o", out.to_str().unwrap()]);
+        assert_eq!(r.code, 2, "{text}: {}", r.stderr);
+        assert_eq!(r.stderr.trim().lines().count(), 1, "{text}: {}", r.stderr);
+        assert!(r.stderr.contains(says), "{text}: {}", r.stderr);
+        assert!(!out.join("model.onnx").exists(), "{text}: wrote a model");
+    }
+}
