@@ -384,6 +384,13 @@ impl VerifyReport {
             }
         }
         if let Some(d) = &self.detection {
+            if let Some(scene) = &d.scene {
+                let same = match d.identical {
+                    Some(true) => "; confident detections identical to the reference's",
+                    _ => "",
+                };
+                let _ = writeln!(s, "  {scene}{same}");
+            }
             let _ = writeln!(s, "  detections ({:?}): agreement mAP@.5 {:.4}  mAP@.5:.95 {:.4}  over {} reference boxes ({})", d.head.kind, d.agreement.map50, d.agreement.map50_95, d.truth_boxes, d.truth);
             if let (Some(r), Some(c)) = (&d.reference_vs_labels, &d.candidate_vs_labels) {
                 let _ = writeln!(s, "  vs labels: reference mAP@.5 {:.4} mAP@.5:.95 {:.4}; candidate {:.4} / {:.4}", r.map50, r.map50_95, c.map50, c.map50_95);
