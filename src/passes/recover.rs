@@ -1,6 +1,7 @@
 //! `recover`: recovery of a pruned detector by distillation from the unpruned one.
 //!
-//! Needs: a `prune` pass earlier in the recipe (it leaves the unpruned model as the teacher),
+//! Needs: a `prune` pass earlier in the recipe (it leaves the unpruned model as the teacher)
+//! or a scene pass (the unspecialized model, on full frames when the scene crops),
 //! a YOLOv5 or YOLOv8 head, and PyTorch (the cache's torch venv, installed on first use;
 //! `PDI_TORCH_PYTHON` points at another). Frames come from `--calib` or the physics pipeline;
 //! no labels are read. Trains on a CUDA GPU when torch sees one, else on the CPU.
@@ -60,7 +61,7 @@ impl Pass for Recover {
         if o.frames < o.batch || o.batch == 0 || !(o.lr > 0.0) || !(o.minutes > 0.0) {
             bail!("recover needs frames >= batch > 0, lr > 0 and minutes > 0");
         }
-        let Teacher { model: teacher, kept, window } = cx.teacher.borrow().clone().ok_or_else(|| anyhow!("recover distills a pruned or scene-specialized model from the model before: put a prune pass (or a scene) before it in the recipe"))?;
+        let Teacher { model: teacher, kept, window } = cx.teacher.borrow().clone().ok_or_else(|| anyhow!("recover distills a pruned or scene-specialized model from the model before: put a prune pass before it in the recipe (or specialize with --scene)"))?;
         // Frames are the teacher's: with a scene ROI the student sees their crop.
         let g = teacher.graph.as_ref().ok_or_else(|| anyhow!("teacher has no graph"))?;
         let graph = Graph::build(g)?;

@@ -213,6 +213,8 @@ fn crop_constant(t: &Tensor, out: &[usize], [fh, fw]: [usize; 2], levels: &[Leve
 /// Returns how many targets changed.
 pub fn follow_shapes(g: &mut GraphProto, old: &Inferred) -> Result<usize> {
     let n = retarget_shapes(g, old)?;
+    // The old targets are read by nobody now.
+    crate::passes::dce::eliminate(g)?;
     refresh_declared_shapes(g)?;
     Ok(n)
 }
