@@ -30,6 +30,22 @@ pub struct CalibrationSet {
     pub source: String,
 }
 
+/// Refuses a frame no calibration should read: non-finite pixels (they turn every range
+/// they touch into NaN) or one value everywhere (no signal, and a zero variance downstream).
+fn check_frame(f: &Frame) -> Result<()> {
+    let v = f.image.as_f32().ok_or_else(|| anyhow!("frame is not float"))?;
+    let bad = v.iter().filter(|x| !x.is_finite()).count();
+    if bad > 0 {
+        bail!("{bad} non-finite pixel(s); calibration frames must be finite: fix or remove the frame");
+    }
+    if let Some(&first) = v.first() {
+        if v.iter().all(|&x| x == first) {
+            bail!("every pixel is {first}: a constant frame carries nothing to calibrate on; remove it");
+        }
+    }
+    Ok(())
+}
+
 /// Up to `n` frames of `height x width` from `folder` (sorted by name), or `n` simulated ones.
 pub fn calibration_frames(folder: Option<&Path>, n: usize, height: usize, width: usize, seed: u64) -> Result<CalibrationSet> {
     if n == 0 {
@@ -41,6 +57,12 @@ pub fn calibration_frames(folder: Option<&Path>, n: usize, height: usize, width:
             bail!("no frames in {} (PNG/TIFF 8/16-bit grayscale or .npy); point --calib at camera frames", dir.display());
         }
         frames.truncate(n);
+        for f in &frames {
+            check_frame(f).map_err(|e| anyhow!("{}: {e}", dir.join(&f.name).display()))?;
+        }
+        if frames.len() < n {
+            eprintln!("warning: {} holds {} frame(s); the pass asked for {n}: its statistics rest on fewer frames", dir.display(), frames.len());
+        }
         let source = format!("{} frames from {}", frames.len(), dir.display());
         return Ok(CalibrationSet { frames, source });
     }

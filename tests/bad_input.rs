@@ -161,3 +161,33 @@ fn hostile_shapes_do_not_crash_inspect() {
     assert!(!r.stderr.contains("internal error") && !r.stderr.contains("panicked"), "{}", r.stderr);
     assert_eq!(r.code, 0, "{}", r.stderr);
 }
+
+/// Calibration folders with a frame no pass should read: a NaN pixel, a constant frame, a
+/// file that is not an image. Each is refused naming the file; nothing is written.
+#[test]
+fn bad_calibration_frames_are_refused_naming_the_file() {
+    use pdi_compile::optics::npy::to_bytes;
+    let dir = tempfile::tempdir().unwrap();
+    let (h, w) = (192, 256);
+    let good: Vec<f32> = (0..h * w).map(|i| (i % 97) as f32 / 97.0).collect();
+    let mut nan = good.clone();
+    nan[1234] = f32::NAN;
+    let cases: [(&str, Vec<u8>, &str); 3] = [
+        ("nan.npy", to_bytes(&[h, w], &nan), "non-finite"),
+        ("flat.npy", to_bytes(&[h, w], &vec![0.5; h * w]), "constant frame"),
+        ("broken.png", b"not a png".to_vec(), "broken.png"),
+    ];
+    for (name, bytes, says) in cases {
+        let calib = dir.path().join(format!("calib_{name}"));
+        std::fs::create_dir_all(&calib).unwrap();
+        std::fs::write(calib.join("a_good.npy"), to_bytes(&[h, w], &good)).unwrap();
+        std::fs::write(calib.join(name), bytes).unwrap();
+        let out = dir.path().join(format!("out_{name}"));
+        let r = cli(&["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", "passes/detect-int8.yaml", "--psf", "calib/single_lwir_blur.npy", "--calib", calib.to_str().unwrap(), "-o", out.to_str().unwrap()]);
+        assert_eq!(r.code, 2, "{name}: {}", r.stderr);
+        let errors: Vec<&str> = r.stderr.lines().filter(|l| l.starts_with("error:")).collect();
+        assert_eq!(errors.len(), 1, "{name}: {}", r.stderr);
+        assert!(errors[0].contains(name) && errors[0].contains(says), "{name}: {}", r.stderr);
+        assert!(!out.join("model.onnx").exists(), "{name}: wrote a model");
+    }
+}
