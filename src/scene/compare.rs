@@ -35,15 +35,14 @@ impl SceneView {
         if (meta.frame[0], meta.frame[1]) != reference_frame {
             bail!("the candidate was specialized from a {}x{} model; the reference takes {}x{} frames", meta.frame[1], meta.frame[0], reference_frame.1, reference_frame.0);
         }
+        // Leading box (and objectness) channels, and candidates per cell: YOLOv5 has one per anchor.
         let (lead, per_cell) = match kind {
-            HeadKind::Yolov5Anchor => (5, 0),
+            HeadKind::Yolov5Anchor => (5, anchors_per_cell(candidate).ok_or_else(|| anyhow!("cannot tell the candidate's anchors per cell from its detection output"))?),
             HeadKind::Yolov8Dfl => (4, 1),
             HeadKind::Raw => bail!("a scene-specialized candidate is compared through its decoded output; the reference's head is raw"),
         };
         let classes: Vec<usize> = meta.classes.clone().unwrap_or_else(|| (0..reference_classes).collect());
         let channels = (0..lead).chain(classes.iter().map(|c| lead + c)).collect();
-        // YOLOv5 has one candidate per anchor and cell.
-        let per_cell = if per_cell == 0 { anchors_per_cell(candidate).ok_or_else(|| anyhow!("cannot tell the candidate's anchors per cell from its detection output"))? } else { per_cell };
         let margin = if meta.roi.is_some() { meta.full_strides.iter().copied().max().unwrap_or(0) as f32 } else { 0.0 };
         Ok(Some(SceneView { candidates: meta.candidate_map(per_cell), channels, kind, meta, margin }))
     }
@@ -65,18 +64,15 @@ impl SceneView {
 
     /// A feed of full frames, cropped to what the candidate sees.
     pub fn crop_feed(&self, feed: &[(String, Tensor)]) -> Result<Vec<(String, Tensor)>> {
-        let Some(r) = self.meta.roi else { return Ok(feed.to_vec()) };
-        feed.iter()
-            .map(|(n, t)| {
-                if t.shape.len() != 4 {
-                    return Ok((n.clone(), t.clone()));
-                }
-                let rows: Vec<usize> = (r.y..r.y + r.h).collect();
-                let cols: Vec<usize> = (r.x..r.x + r.w).collect();
-                let c = t.select(2, &rows).and_then(|c| c.select(3, &cols)).ok_or_else(|| anyhow!("frame of shape {:?} does not hold the ROI", t.shape))?;
-                Ok((n.clone(), c))
-            })
-            .collect()
+        feed.iter().map(|(n, t)| Ok((n.clone(), if t.shape.len() == 4 { self.crop_image(t)? } else { t.clone() }))).collect()
+    }
+
+    /// The ROI of a [1, C, H, W] frame (the frame itself when the scene has no ROI).
+    fn crop_image(&self, t: &Tensor) -> Result<Tensor> {
+        let Some(r) = self.meta.roi else { return Ok(t.clone()) };
+        let rows: Vec<usize> = (r.y..r.y + r.h).collect();
+        let cols: Vec<usize> = (r.x..r.x + r.w).collect();
+        t.select(2, &rows).and_then(|c| c.select(3, &cols)).ok_or_else(|| anyhow!("frame of shape {:?} does not hold the ROI", t.shape))
     }
 
     /// One line on what is compared.
@@ -96,11 +92,7 @@ impl SceneView {
 
     /// The frame the candidate sees.
     pub fn crop(&self, f: &Frame) -> Result<Frame> {
-        let Some(r) = self.meta.roi else { return Ok(f.clone()) };
-        let rows: Vec<usize> = (r.y..r.y + r.h).collect();
-        let cols: Vec<usize> = (r.x..r.x + r.w).collect();
-        let image = f.image.select(2, &rows).and_then(|t| t.select(3, &cols)).ok_or_else(|| anyhow!("frame of shape {:?} does not hold the ROI", f.image.shape))?;
-        Ok(Frame { image, ..f.clone() })
+        Ok(Frame { image: self.crop_image(&f.image)?, ..f.clone() })
     }
 
     /// The reference's decoded output in the candidate's layout.
