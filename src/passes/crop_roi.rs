@@ -8,9 +8,11 @@
 //! stays the gate of (x, y): the physics stays where it belongs) and the decode grids and
 //! anchor points (boxes come out in full-frame coordinates). `pdi.scene` records the ROI and
 //! the frame size; `imgsz` becomes the ROI's.
-//! Guarantees: away from the ROI's edges (where a convolution's window reaches past the
-//! crop) the outputs are the full model's on the same pixels; `verify` measures agreement on
-//! reference detections at least one coarsest stride inside the ROI.
+//! Guarantees: every cropped constant equals the full one's crop bit for bit. The outputs are
+//! *not* the full model's: near the crop's edges convolutions see padding, and everywhere the
+//! SPPF's pooling and the bridge's squeeze-excitation average over a smaller frame. The
+//! pass leaves the full model as the teacher (full frames, cropped values) for `recover`;
+//! `verify` measures agreement on reference detections one coarsest stride inside the ROI.
 //! Reports: the ROI, the constants cropped, Reshape targets rewritten.
 
 use crate::onnx::proto::ModelProto;

@@ -9,7 +9,7 @@
 //! classes in the scene's order and `pdi.scene` maps them to the original indices.
 //! Guarantees: boxes, objectness and the kept classes' scores are bit-identical to the
 //! original's in f32 (the same rows of the same convolutions, nothing recomputed); so
-//! detections after class-aware NMS are the original's restricted to the kept classes.
+//! detections after class-aware NMS are the original's decoded on the kept classes' scores.
 //! Reports: kept and dropped classes, the convolutions cut, MACs and parameters saved (the
 //! runner's before/after counts).
 

@@ -116,13 +116,12 @@ impl Pass for DropStrides {
                 })
             })
             .collect();
-        let m = model;
-        let mut meta = SceneMeta::begin(m)?;
-        let cut = geometry::apply(super::graph_mut(m)?, &Cut { window: Roi { x: 0, y: 0, w, h }, keep: keep.clone() })?;
+        let mut meta = SceneMeta::begin(model)?;
+        let cut = geometry::apply(super::graph_mut(model)?, &Cut { window: Roi { x: 0, y: 0, w, h }, keep: keep.clone() })?;
         meta.object_px = Some([lo, hi]);
         meta.strides = Some(levels.iter().zip(&keep).filter(|(_, &k)| k).map(|(l, _)| l.stride).collect());
-        meta.write(m)?;
-        crate::scene::set_metadata(m, "stride", &format!("{:?}", meta.strides.as_ref().expect("set")));
+        meta.write(model)?;
+        crate::scene::set_metadata(model, "stride", &format!("{:?}", meta.strides.as_ref().expect("set")));
         Ok(serde_json::json!({
             "object_px": [lo, hi],
             "levels": report_levels,
