@@ -83,7 +83,7 @@ impl Pass for DropStrides {
             let outputs: Vec<String> = g.output.iter().map(|o| o.name.clone()).collect();
             let head = head::detect(&graph, &inf, &outputs);
             let rules: Vec<(bool, String)> = match head.kind {
-                HeadKind::Yolov5Anchor => v5_anchors(&graph, &levels)?.iter().map(|a| v5_rule(a, lo, hi, self.options.anchor_t)).collect(),
+                HeadKind::Yolov5Anchor => v5_anchors(&graph, &inf, &levels)?.iter().map(|a| v5_rule(a, lo, hi, self.options.anchor_t)).collect(),
                 HeadKind::Yolov8Dfl => levels.iter().map(|l| v8_rule(l, head.reg_max.unwrap_or(16), lo)).collect(),
                 HeadKind::Raw => bail!("drop-strides needs a YOLOv5 or YOLOv8 decode in the graph; this head is raw"),
             };
@@ -134,8 +134,7 @@ impl Pass for DropStrides {
 
 /// Each level's anchors (w, h in pixels): the decode multiplies (2 sigmoid)^2 by a constant
 /// [1, A, 1, 1, 2] downstream of the level's head convolution.
-fn v5_anchors(g: &Graph, levels: &[Level]) -> Result<Vec<Vec<[f32; 2]>>> {
-    let inf = infer(g);
+fn v5_anchors(g: &Graph, inf: &crate::ir::Inferred, levels: &[Level]) -> Result<Vec<Vec<[f32; 2]>>> {
     let convs = detector_convolutions(g);
     levels
         .iter()

@@ -12,7 +12,7 @@
 use crate::analysis::channels::detector_convolutions;
 use crate::ir::{infer, Graph, Inferred};
 use crate::onnx::edit::{initializer, set_initializer};
-use crate::onnx::proto::{DimensionValue, GraphProto, TypeValue};
+use crate::onnx::proto::{DimensionValue, GraphProto, TensorShapeProto, TypeValue, ValueInfoProto};
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
 use crate::tensor::{Tensor, TensorData};
 use anyhow::{anyhow, bail, Result};
@@ -223,12 +223,13 @@ pub fn follow_shapes(g: &mut GraphProto, old: &Inferred) -> Result<usize> {
 /// in node order, each against the shapes the edits before it produced; returns how many.
 fn retarget_shapes(g: &mut GraphProto, old: &Inferred) -> Result<usize> {
     let mut changed = 0;
+    // Shapes downstream of a rewritten target change: infer again only after a rewrite.
+    let mut new = infer(&Graph::build(g)?);
     for i in 0..g.node.len() {
         let op = g.node[i].op_type.clone();
         if op != "Reshape" && op != "Resize" {
             continue;
         }
-        let new = infer(&Graph::build(g)?);
         let n = &g.node[i];
         let (Some(old_in), Some(new_in)) = (old.shape(&n.input[0]), new.shape(&n.input[0])) else {
             bail!("node '{}' ({op}) has no static input shape", n.name);
@@ -239,7 +240,7 @@ fn retarget_shapes(g: &mut GraphProto, old: &Inferred) -> Result<usize> {
         let slot = if op == "Reshape" { 1 } else { 3 };
         let Some(target_name) = n.input.get(slot).filter(|s| !s.is_empty()).cloned() else { continue };
         let Some(old_out) = old.shape(&n.output[0]) else { bail!("node '{}' has no static output shape", n.name) };
-        let Some(t) = initializer(g, &target_name) else {
+        if initializer(g, &target_name).is_none() {
             bail!("node '{}' ({op}) computes its target shape at run time; run fold-constants before specializing", n.name);
         };
         let new_target: Vec<i64> = if op == "Reshape" {
@@ -248,9 +249,9 @@ fn retarget_shapes(g: &mut GraphProto, old: &Inferred) -> Result<usize> {
             old_out.iter().zip(old_in.iter().zip(&new_in)).map(|(&o, (&a, &b))| (o * b / a.max(1)) as i64).collect()
         };
         let tensor = Tensor::new(vec![new_target.len()], TensorData::I64(new_target));
-        let _ = t;
         crate::onnx::edit::set_input_constant(g, i, slot, &tensor, "scene");
         changed += 1;
+        new = infer(&Graph::build(g)?);
     }
     Ok(changed)
 }
@@ -300,16 +301,19 @@ pub fn reshape_target(old_in: &[usize], old_out: &[usize], new_in: &[usize]) -> 
     Some(out)
 }
 
+/// The declared shape of a value, where it has one.
+fn shape_mut(v: &mut ValueInfoProto) -> Option<&mut TensorShapeProto> {
+    match v.r#type.as_mut()?.value.as_mut()? {
+        TypeValue::TensorType(t) => t.shape.as_mut(),
+        _ => None,
+    }
+}
+
+/// Sets the input's declared dims where `dims` gives one (≥ 0).
 fn set_dims(g: &mut GraphProto, name: &str, dims: &[i64]) {
-    for v in g.input.iter_mut().filter(|v| v.name == name) {
-        if let Some(TypeValue::TensorType(t)) = v.r#type.as_mut().and_then(|t| t.value.as_mut()) {
-            if let Some(s) = t.shape.as_mut() {
-                for (d, &n) in s.dim.iter_mut().zip(dims) {
-                    if n >= 0 {
-                        d.value = Some(DimensionValue::DimValue(n));
-                    }
-                }
-            }
+    for s in g.input.iter_mut().filter(|v| v.name == name).filter_map(shape_mut) {
+        for (d, &n) in s.dim.iter_mut().zip(dims).filter(|(_, &n)| n >= 0) {
+            d.value = Some(DimensionValue::DimValue(n));
         }
     }
 }
@@ -320,13 +324,8 @@ fn refresh_declared_shapes(g: &mut GraphProto) -> Result<()> {
     let inf = infer(&Graph::build(g)?);
     let outs: Vec<(String, Vec<usize>)> = g.output.iter().map(|o| Ok((o.name.clone(), inf.shape(&o.name).ok_or_else(|| anyhow!("output '{}' lost its static shape", o.name))?))).collect::<Result<_>>()?;
     for (name, shape) in outs {
-        let dims: Vec<i64> = shape.iter().map(|&d| d as i64).collect();
-        for v in g.output.iter_mut().filter(|v| v.name == name) {
-            if let Some(TypeValue::TensorType(t)) = v.r#type.as_mut().and_then(|t| t.value.as_mut()) {
-                if let Some(s) = t.shape.as_mut() {
-                    s.dim = dims.iter().map(|&d| crate::onnx::proto::Dimension { value: Some(DimensionValue::DimValue(d)), ..Default::default() }).collect();
-                }
-            }
+        for s in g.output.iter_mut().filter(|v| v.name == name).filter_map(shape_mut) {
+            s.dim = shape.iter().map(|&d| crate::onnx::proto::Dimension { value: Some(DimensionValue::DimValue(d as i64)), ..Default::default() }).collect();
         }
     }
     crate::passes::fold_constants::write_value_info(g)?;
