@@ -1,7 +1,7 @@
 //! INT8 (QDQ) and FP16 compiles of the fixtures: ONNX Runtime fuses the INT8 graph into
 //! integer kernels, outputs stay close to float per channel group, degenerate calibration
-//! sets (all-zero frames, outliers) give finite scales and warnings, mixed precision keeps
-//! layers float until its budget holds (or says it could not).
+//! sets (near-black frames, outliers) give finite scales and an all-zero one is refused,
+//! mixed precision keeps layers float until its budget holds (or says it could not).
 
 mod common;
 use common::*;
@@ -79,36 +79,41 @@ fn int8_fixtures_fuse_into_integer_kernels_and_stay_close_per_channel_group() {
     }
 }
 
+/// Frames no calibration should trust: near-black frames (a few LSB of noise, so nearly every
+/// activation range collapses) and dim frames with one saturated hot spot (minmax ranges blow
+/// up, clipping methods don't) give finite scales; an all-zero folder is refused up front.
 #[test]
-fn degenerate_calibration_sets_give_finite_scales_and_warnings() {
+fn degenerate_calibration_sets_give_finite_scales_or_a_clear_refusal() {
     let dir = tempfile::tempdir().unwrap();
     let recipe = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 4, analysis_frames: 2, held_out_frames: 2");
     let (w, h) = (256, 192);
-    let zeros = dir.path().join("zeros");
-    let outliers = dir.path().join("outliers");
-    std::fs::create_dir_all(&zeros).unwrap();
-    std::fs::create_dir_all(&outliers).unwrap();
+    let (zeros, dark, outliers) = (dir.path().join("zeros"), dir.path().join("dark"), dir.path().join("outliers"));
+    for d in [&zeros, &dark, &outliers] {
+        std::fs::create_dir_all(d).unwrap();
+    }
     let mut rng = Lcg(9);
     for i in 0..6 {
         pdi_compile::frames::write_gray16(&zeros.join(format!("{i}.png")), w, h, &vec![0.0; w * h]).unwrap();
-        // Dim noise with one saturated hot spot: minmax ranges blow up, clipping methods don't.
+        let v: Vec<f32> = (0..w * h).map(|_| 4.0 / 65535.0 * rng.next_f32()).collect();
+        pdi_compile::frames::write_gray16(&dark.join(format!("{i}.png")), w, h, &v).unwrap();
         let mut v: Vec<f32> = (0..w * h).map(|_| 0.05 * rng.next_f32()).collect();
         v[(h / 2) * w + w / 2] = 1.0;
         pdi_compile::frames::write_gray16(&outliers.join(format!("{i}.png")), w, h, &v).unwrap();
     }
-    for (set, method) in [(&zeros, "percentile"), (&zeros, "entropy"), (&outliers, "minmax"), (&outliers, "mse")] {
+    for (set, method) in [(&dark, "percentile"), (&dark, "entropy"), (&outliers, "minmax"), (&outliers, "mse")] {
         let recipe = variant(dir.path(), &recipe, "method: mse", &format!("method: {method}"));
         let out = dir.path().join(format!("{}_{method}", set.file_name().unwrap().to_str().unwrap()));
-        let q = compile(V5, &recipe, &out, &["--calib", set.to_str().unwrap()]);
+        compile(V5, &recipe, &out, &["--calib", set.to_str().unwrap()]);
         scales_are_finite(&out.join("model.onnx"));
         for (name, t) in run_candidate(&out.join("model.onnx"), Engine::Ort) {
             assert!(t.data.to_f64().iter().all(|v| v.is_finite()), "{name} finite");
         }
-        if set == &zeros {
-            let warnings = q["warnings"].to_string();
-            assert!(warnings.contains("constant zero"), "all-zero frames are named: {warnings}");
-        }
     }
+    let out = dir.path().join("zeros_out");
+    let r = cli(&["compile", V5, "--pipeline", &recipe, "--psf", PSF, "--calib", zeros.to_str().unwrap(), "-o", out.to_str().unwrap()]);
+    assert_eq!(r.code, 2, "{}", r.stderr);
+    assert!(r.stderr.contains("0.png") && r.stderr.contains("constant"), "{}", r.stderr);
+    assert!(!out.exists(), "nothing written");
 }
 
 #[test]
