@@ -61,7 +61,7 @@ pub fn calibration_frames(folder: Option<&Path>, n: usize, height: usize, width:
             check_frame(f).map_err(|e| anyhow!("{}: {e}", dir.join(&f.name).display()))?;
         }
         if frames.len() < n {
-            eprintln!("warning: {} holds {} frame(s); the pass asked for {n}: its statistics rest on fewer frames", dir.display(), frames.len());
+            crate::warn::warn(format!("{} holds {} frame(s); the pass asked for {n}: its statistics rest on fewer frames", dir.display(), frames.len()));
         }
         let source = format!("{} frames from {}", frames.len(), dir.display());
         return Ok(CalibrationSet { frames, source });

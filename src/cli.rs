@@ -197,6 +197,42 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Candidates against their reference under stressed frames (noise, gain/offset drift,
+    /// saturated hot objects, dark/bright scenes, dead/stuck pixels, fixed-pattern noise, a
+    /// drifting blur map, NaN pixels): DIR/stress.json, .md, .svg, .png; exit 1 if a gate fails.
+    Stress {
+        /// The original model (run on ONNX Runtime), e.g. the trained export.
+        #[arg(long)]
+        reference: PathBuf,
+        /// Compiled models to stress (repeat the option for several).
+        #[arg(long = "candidate", required = true)]
+        candidates: Vec<PathBuf>,
+        /// Camera blur map, for models that take it as an input (the reference usually does).
+        #[arg(long)]
+        psf: Option<PathBuf>,
+        /// Base frames (PNG/TIFF/.npy); simulated by the physics pipeline when not given.
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Condition file (YAML, see passes/stress.yaml, the default set).
+        #[arg(long)]
+        conditions: Option<PathBuf>,
+        /// Frames per condition (default: the condition file's, else 32).
+        #[arg(long)]
+        frames: Option<usize>,
+        /// Thresholds (YAML: min_agreement, max_rel_l2, max_extra_nonfinite, max_saturation,
+        /// max_fp16_headroom, conditions).
+        #[arg(long)]
+        gate: Option<PathBuf>,
+        /// Also write the gate's checks as JUnit XML to this file.
+        #[arg(long)]
+        junit: Option<PathBuf>,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        #[arg(short = 'o', long = "out")]
+        out: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
     /// Build DIR/model.rknn from a `--target rknn` folder with RKNN-Toolkit2 2.5.0 (installed
     /// into the cache on first use), simulate it and compare with ONNX Runtime; exit 1 when an
     /// output or score group falls below --min-cosine or a layer lands on the CPU.
@@ -284,8 +320,8 @@ pub fn run(cli: Cli) -> Result<u8> {
                 for p in &r.passes {
                     println!("  {:<16} {:>8.1} ms  nodes {} -> {}", p.pass, p.millis, p.before.nodes, p.after.nodes);
                 }
-                for w in &r.warnings {
-                    println!("  warning: {w}");
+                if !r.warnings.is_empty() {
+                    println!("  {} warning(s), on stderr above and in report.json", r.warnings.len());
                 }
             }
         }
@@ -349,6 +385,29 @@ pub fn run(cli: Cli) -> Result<u8> {
             } else {
                 print!("{}", r.markdown());
                 println!("wrote {}", crate::bench::out_files(&out));
+            }
+        }
+        Command::Stress { reference, candidates, psf, data, conditions, frames, gate, junit, seed, out, json } => {
+            if frames.is_some_and(|n| n == 0 || n > 4096) {
+                anyhow::bail!("--frames must be in 1..4096");
+            }
+            let gate = gate.map(|g| crate::stress::gate::StressGate::load(&g)).transpose()?;
+            if junit.is_some() && gate.is_none() {
+                anyhow::bail!("--junit reports the gate's checks; give --gate FILE too");
+            }
+            let r = crate::stress::stress(&crate::stress::StressRequest { reference, candidates, psf, data, conditions, frames, gate, seed })?;
+            crate::stress::render::write(&out, &r)?;
+            if let Some(path) = &junit {
+                crate::fsutil::write_atomic(path, crate::verify::junit::render("stress", &r.checks, r.seconds).as_bytes())?;
+            }
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r)?);
+            } else {
+                print!("{}", crate::stress::render::markdown(&r));
+                println!("\nwrote {}/stress.{{json,md,svg,png}}", out.display());
+            }
+            if !r.passed {
+                return Ok(EXIT_GATE_FAILED);
             }
         }
         Command::RknnConvert { dir, data, frames, min_cosine, json } => {

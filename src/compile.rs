@@ -40,6 +40,7 @@ pub struct CompileReport {
     pub before: pipeline::Counts,
     pub after: pipeline::Counts,
     pub passes: Vec<PassReport>,
+    /// Every warning of the compile (also printed on stderr as it happened).
     pub warnings: Vec<String>,
     pub millis: f64,
     pub output: String,
@@ -58,8 +59,17 @@ pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
     let bytes = std::fs::read(&req.model).map_err(|e| anyhow::anyhow!("cannot read {}: {e}", req.model.display()))?;
     let loaded = onnx::load_bytes(&bytes, req.model.parent().or(Some(Path::new("."))))
         .map_err(|e| anyhow::anyhow!("{}: {e:#}", req.model.display()))?;
+    for w in &loaded.warnings {
+        crate::warn::warn(w.clone());
+    }
     let mut model = loaded.model;
     let passes = pipeline::run(&recipe, &mut model, &req.context)?;
+    // Passes list their warnings in their details; they join the top-level list (and stderr).
+    for p in &passes {
+        for w in p.details["warnings"].as_array().into_iter().flatten().filter_map(|w| w.as_str()) {
+            crate::warn::warn(format!("{}: {w}", p.pass));
+        }
+    }
     if let Some(scene) = &req.context.scene {
         crate::scene::record_post_processing(&mut model, scene)?;
     }
@@ -92,7 +102,7 @@ pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
         before,
         after,
         passes,
-        warnings: loaded.warnings,
+        warnings: crate::warn::take(),
         millis: t.elapsed().as_secs_f64() * 1e3,
         output: out_model.display().to_string(),
         target: req.target,

@@ -16,38 +16,64 @@ pub struct Frame {
     pub labels: Option<Vec<Truth>>,
 }
 
-/// Frames from `dir`, each `height x width` (the model's input size).
+/// Frames from `dir`, each `height x width` (the model's input size). Frames of another
+/// size are area-resized and colour frames converted to luma, each with one warning on
+/// stderr saying how many: a deployment's frames rarely match the model exactly, and
+/// refusing them would push users to resize by hand with worse filters.
 pub fn load_folder(dir: &Path, height: usize, width: usize) -> Result<Vec<Frame>> {
-    crate::dataset::image_files(dir)?
-        .iter().map(|f| load_frame(f, height, width).with_context(|| format!("{}", f.display()))).collect()
+    let (mut resized, mut colour) = (Vec::new(), 0usize);
+    let mut frames = Vec::new();
+    for f in crate::dataset::image_files(dir)? {
+        let g = decode(&f).with_context(|| format!("{}", f.display()))?;
+        colour += usize::from(g.channels > 1);
+        let data = if (g.w, g.h) == (width, height) {
+            g.data
+        } else {
+            resized.push((g.w, g.h));
+            crate::dataset::resize_area(&g.data, g.w, g.h, width, height)
+        };
+        let labels = read_yolo_labels(&f.with_extension("txt"), width as f32, height as f32)?;
+        frames.push(Frame { name: f.file_name().unwrap_or_default().to_string_lossy().into_owned(), image: Tensor::f32(vec![1, 1, height, width], data), labels });
+    }
+    if let Some(&(w, h)) = resized.first() {
+        crate::warn::warn(format!("{}: {} frame(s) are not {width}x{height} (the first is {w}x{h}); area-resized to the model's input, labels kept normalized", dir.display(), resized.len()));
+    }
+    if colour > 0 {
+        crate::warn::warn(format!("{}: {colour} frame(s) have colour channels; converted to luma (thermal frames are single-channel)", dir.display()));
+    }
+    Ok(frames)
 }
 
-fn load_frame(path: &Path, height: usize, width: usize) -> Result<Frame> {
-    let (w, h, data) = read_gray(path)?;
-    if (w, h) != (width, height) {
-        bail!("frame is {w}x{h} but the model takes {width}x{height}; rescale the frames first");
-    }
-    let labels = read_yolo_labels(&path.with_extension("txt"), width as f32, height as f32)?;
-    Ok(Frame { name: path.file_name().unwrap_or_default().to_string_lossy().into_owned(), image: Tensor::f32(vec![1, 1, h, w], data), labels })
+struct Gray {
+    w: usize,
+    h: usize,
+    data: Vec<f32>,
+    /// Channels of the stored image (1 for luma and .npy).
+    channels: usize,
 }
 
 /// A grayscale frame as (width, height, values in [0, 1]): 8/16-bit PNG or TIFF (by full
-/// scale of the bit depth), or a float `.npy` [H, W] taken as is.
+/// scale of the bit depth; colour images converted to luma), or a float `.npy` [H, W] taken as is.
 pub fn read_gray(path: &Path) -> Result<(usize, usize, Vec<f32>)> {
+    decode(path).map(|g| (g.w, g.h, g.data))
+}
+
+fn decode(path: &Path) -> Result<Gray> {
     if path.extension().is_some_and(|e| e == "npy") {
         let a = npy::read(path)?;
         let dims: Vec<usize> = a.shape.iter().copied().filter(|&d| d != 1).collect();
         let [h, w] = dims[..] else { bail!("expected a [H, W] array, got {:?}", a.shape) };
-        return Ok((w, h, a.data));
+        return Ok(Gray { w, h, data: a.data, channels: 1 });
     }
     let img = image::open(path).map_err(|e| anyhow!("cannot decode image: {e}"))?;
     let (w, h) = (img.width() as usize, img.height() as usize);
+    let channels = img.color().channel_count() as usize - usize::from(img.color().has_alpha());
     let data: Vec<f32> = match img {
         image::DynamicImage::ImageLuma8(b) => b.into_raw().iter().map(|&v| v as f32 / 255.0).collect(),
         image::DynamicImage::ImageLuma16(b) => b.into_raw().iter().map(|&v| v as f32 / 65535.0).collect(),
         other => other.to_luma32f().into_raw(),
     };
-    Ok((w, h, data))
+    Ok(Gray { w, h, data, channels })
 }
 
 /// Writes values in [0, 1] as a 16-bit grayscale PNG, atomically.

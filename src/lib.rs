@@ -8,6 +8,7 @@
 pub mod analysis;
 pub mod bench;
 pub mod calib_frames;
+pub mod canvas;
 pub mod cli;
 pub mod compile;
 pub mod dataset;
@@ -26,6 +27,8 @@ pub mod quant;
 pub mod prune;
 pub mod runtime;
 pub mod scene;
+pub mod stress;
 pub mod targets;
 pub mod tensor;
 pub mod verify;
+pub mod warn;

@@ -243,7 +243,7 @@ fn allocate(original: &ModelProto, analysis: &crate::analysis::channels::Channel
         _ => bail!("prune target: give exactly one of macs or latency (a fraction of the unpruned model), e.g. target: {{macs: 0.3}}"),
     };
     if !met {
-        eprintln!("warning: prune: the target {target:?} is out of reach with ratios up to {}; pruned as far as the levels go", LEVELS[LEVELS.len() - 1]);
+        crate::warn::warn(format!("prune: the target {target:?} is out of reach with ratios up to {}; pruned as far as the levels go", LEVELS[LEVELS.len() - 1]));
     }
     Ok((ratios, serde_json::json!({ "met": met, "levels": LEVELS, "frames": feeds.len(), "groups": groups })))
 }

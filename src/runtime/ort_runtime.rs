@@ -128,14 +128,20 @@ fn to_ort(t: &Tensor) -> Result<DynValue> {
 }
 
 fn from_ort(v: &DynValue) -> Result<Tensor> {
-    let ty = match v.dtype() {
-        ValueType::Tensor { ty, .. } => *ty,
+    let (ty, shape) = match v.dtype() {
+        ValueType::Tensor { ty, shape, .. } => (*ty, shape),
         other => bail!("non-tensor value ({other:?}) is not supported"),
     };
+    // An empty tensor has no data pointer for ort to make a slice of (debug builds abort).
+    let empty = shape.iter().any(|&d| d == 0);
     macro_rules! prim {
         ($t:ty, $variant:ident) => {{
-            let (shape, data) = v.try_extract_tensor::<$t>().map_err(|e| anyhow!("{e}"))?;
-            Tensor::new(dims(shape), TensorData::$variant(data.to_vec()))
+            if empty {
+                Tensor::new(dims(shape), TensorData::$variant(Vec::new()))
+            } else {
+                let (shape, data) = v.try_extract_tensor::<$t>().map_err(|e| anyhow!("{e}"))?;
+                Tensor::new(dims(shape), TensorData::$variant(data.to_vec()))
+            }
         }};
     }
     Ok(match ty {

@@ -30,7 +30,7 @@ use std::path::PathBuf;
 /// YOLO validation's candidate threshold: low, so the precision-recall curve is complete.
 const EVAL_CONF: f32 = 0.001;
 /// A reference detection counts as an object to agree on from this score (a deployment's usual cut).
-const AGREEMENT_CONF: f32 = 0.25;
+pub(crate) const AGREEMENT_CONF: f32 = 0.25;
 /// COCO scores at most this many detections per frame and class; truths are capped alike so
 /// that a candidate identical to the reference scores 1.
 const TRUTH_PER_CLASS: usize = 100;
@@ -106,8 +106,8 @@ pub struct VerifyReport {
 
 pub(crate) struct Side {
     pub(crate) model: ModelProto,
-    image_input: String,
-    other_inputs: Vec<String>,
+    pub(crate) image_input: String,
+    pub(crate) other_inputs: Vec<String>,
     pub(crate) shape: (usize, usize),
 }
 
@@ -137,7 +137,7 @@ pub(crate) fn feeds(side: &Side, frame: &Frame, psf: Option<&Tensor>) -> Result<
     Ok(v)
 }
 
-fn detections(head: &Head, outputs: &[(String, Tensor)]) -> Result<Vec<Detection>> {
+pub(crate) fn detections(head: &Head, outputs: &[(String, Tensor)]) -> Result<Vec<Detection>> {
     let name = head.output.as_deref().ok_or_else(|| anyhow!("no detection output"))?;
     let t = &outputs.iter().find(|(n, _)| n == name).ok_or_else(|| anyhow!("output {name} missing"))?.1;
     let iou = if head.kind == HeadKind::Yolov8Dfl { 0.7 } else { 0.6 }; // ultralytics val defaults
@@ -295,9 +295,9 @@ pub(crate) fn select_channels(kind: HeadKind, t: &Tensor, range: std::ops::Range
     }
 }
 
-fn detection_report(head: &Head, frames: &[Frame], reference: &[Vec<Detection>], candidate: &[Vec<Detection>], tract: &[Vec<Detection>]) -> DetectionReport {
-    let classes = head.classes.unwrap_or(1).max(1);
-    let to_truth = |d: &Detection| Truth { class: d.class, bbox: d.bbox };
+/// The reference's detections taken as truth when a candidate is scored against them:
+/// those scoring at least AGREEMENT_CONF (capped per class), and how they were chosen.
+pub(crate) fn agreement_truth(reference: &[Vec<Detection>], classes: usize) -> (Vec<Vec<Truth>>, String) {
     let confident = reference.iter().any(|ds| ds.iter().any(|d| d.score >= AGREEMENT_CONF));
     // An untrained (or very unsure) reference has no confident boxes: then every box it keeps
     // after NMS is an object to agree on, and precision and recall say how many the candidate
@@ -308,7 +308,7 @@ fn detection_report(head: &Head, frames: &[Frame], reference: &[Vec<Detection>],
     } else {
         format!("no reference score reaches {AGREEMENT_CONF}: all its detections after NMS")
     };
-    let truth: Vec<Vec<Truth>> = reference
+    let truth = reference
         .iter()
         .map(|ds| {
             let mut per_class = vec![0usize; classes];
@@ -318,10 +318,16 @@ fn detection_report(head: &Head, frames: &[Frame], reference: &[Vec<Detection>],
                     per_class[d.class] += 1;
                     per_class[d.class] <= TRUTH_PER_CLASS
                 })
-                .map(to_truth)
+                .map(|d| Truth { class: d.class, bbox: d.bbox })
                 .collect()
         })
         .collect();
+    (truth, how)
+}
+
+fn detection_report(head: &Head, frames: &[Frame], reference: &[Vec<Detection>], candidate: &[Vec<Detection>], tract: &[Vec<Detection>]) -> DetectionReport {
+    let classes = head.classes.unwrap_or(1).max(1);
+    let (truth, how) = agreement_truth(reference, classes);
     let labels: Option<Vec<Vec<Truth>>> = frames.iter().map(|f| f.labels.clone()).collect();
     DetectionReport {
         head: head.clone(),

@@ -1,0 +1,81 @@
+//! `pdi-compile stress` on the trained tiny model: the lossless compile agrees with the
+//! export under every condition, the INT8 compile's clipping is measured per layer, the
+//! output folder is complete, and gates, bad condition files and bad gates are answered
+//! as a CI job needs (exit 1, exit 2 with one line).
+
+mod common;
+use common::*;
+use std::path::Path;
+
+const TINY: &str = "models/trained/pdinet_v5_tiny_trained.onnx";
+const PSF: &str = "calib/single_lwir_blur.npy";
+
+fn compile(recipe: &str, out: &Path, extra: &[&str]) {
+    let mut args = vec!["compile", TINY, "--pipeline", recipe, "--psf", PSF, "-o", out.to_str().unwrap()];
+    args.extend_from_slice(extra);
+    let r = cli(&args);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+}
+
+#[test]
+fn stress_measures_the_compiles_under_each_condition_and_gates_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    compile("passes/detect-f32.yaml", &d.join("f32"), &[]);
+    let int8 = d.join("int8.yaml");
+    std::fs::write(&int8, std::fs::read_to_string(repo().join("passes/detect-int8.yaml")).unwrap().replace("calib_frames: 64", "calib_frames: 16")).unwrap();
+    compile(int8.to_str().unwrap(), &d.join("int8"), &[]);
+    let conditions = d.join("conditions.yaml");
+    std::fs::write(&conditions, "frames: 6\nconditions:\n  - {kind: clean}\n  - {kind: gain, gain: [2.0]}\n  - {kind: hot_objects, size_px: 20}\n  - {kind: blur_offset, delta: 0.1}\n  - {kind: nan_pixels, share: 0.001}\n").unwrap();
+    let (f32c, int8c) = (d.join("f32/model.onnx"), d.join("int8/model.onnx"));
+    let out = d.join("stress");
+    let base = ["stress", "--reference", TINY, "--candidate", f32c.to_str().unwrap(), "--candidate", int8c.to_str().unwrap(), "--psf", PSF, "--conditions", conditions.to_str().unwrap()];
+    let mut args = base.to_vec();
+    args.extend(["-o", out.to_str().unwrap(), "--json"]);
+    let r = cli(&args);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    for f in ["stress.json", "stress.md", "stress.svg", "stress.png"] {
+        assert!(out.join(f).metadata().is_ok_and(|m| m.len() > 100), "{f} written");
+    }
+    let conds = report["conditions"].as_array().unwrap();
+    assert_eq!(conds.len(), 5);
+    let get = |name: &str, cand: &str| conds.iter().find(|c| c["name"] == name).unwrap()["candidates"][cand].clone();
+    // The lossless compile folds the blur map: exact on the frames, moved only by the map's drift.
+    for c in ["clean", "gain_x2", "hot_objects_20px"] {
+        let o = get(c, "f32");
+        assert!(o["worst_rel_l2"].as_f64().unwrap() < 1e-4, "{c}: {o}");
+        assert!(o["agreement"].as_f64().is_none_or(|a| a > 0.99), "{c}: {o}");
+    }
+    assert!(get("blur_+0.1", "f32")["worst_rel_l2"].as_f64().unwrap() > 1e-3, "a folded map does not follow the drift");
+    let clean8 = get("clean", "int8");
+    assert_eq!(clean8["layers"]["measure"], "saturation", "{clean8}");
+    assert!(clean8["layers"]["layers"].as_u64().unwrap() > 10);
+    let sat = |c: &str| get(c, "int8")["layers"]["worst"].as_f64().unwrap();
+    assert!(sat("gain_x2") > sat("clean"), "doubling the gain clips more: {} vs {}", sat("gain_x2"), sat("clean"));
+    let nan = conds.iter().find(|c| c["name"] == "nan_pixels_0.1%").unwrap();
+    assert!(nan["reference_nonfinite"].as_u64().unwrap() > 0, "NaN pixels reach the reference's outputs");
+    assert!(std::fs::read_to_string(out.join("stress.md")).unwrap().contains("## What breaks"));
+
+    // A gate nobody can meet fails with exit 1 and a JUnit file; a gate naming a condition
+    // the run lacks, and a bad condition file, are refused with exit 2 and one line.
+    let gate = d.join("gate.yaml");
+    std::fs::write(&gate, "min_agreement: 1.01\nconditions: [clean]\n").unwrap();
+    let junit = d.join("junit.xml");
+    let gated = d.join("gated");
+    let mut args = base.to_vec();
+    args.extend(["-o", gated.to_str().unwrap(), "--gate", gate.to_str().unwrap(), "--junit", junit.to_str().unwrap()]);
+    let r = cli(&args);
+    assert_eq!(r.code, 1, "{}", r.stderr);
+    assert!(std::fs::read_to_string(&junit).unwrap().contains("<failure"));
+    std::fs::write(&gate, "min_agreement: 0.5\nconditions: [clear]\n").unwrap();
+    let r = cli(&args);
+    assert_eq!(r.code, 2, "{}", r.stderr);
+    assert!(r.stderr.contains("'clear'") && r.stderr.trim().lines().count() == 1, "{}", r.stderr);
+    std::fs::write(&conditions, "conditions: [{kind: gain, gain: 0}]").unwrap();
+    let bad = d.join("bad");
+    let r = cli(&base.iter().copied().chain(["-o", bad.to_str().unwrap()]).collect::<Vec<_>>());
+    assert_eq!(r.code, 2, "{}", r.stderr);
+    assert!(r.stderr.contains("gain 0 is outside") && r.stderr.trim().lines().count() == 1, "{}", r.stderr);
+    assert!(!d.join("bad").exists(), "nothing written for a refused run");
+}
