@@ -65,7 +65,29 @@ fn decode(path: &Path) -> Result<Gray> {
         let [h, w] = dims[..] else { bail!("expected a [H, W] array, got {:?}", a.shape) };
         return Ok(Gray { w, h, data: a.data, channels: 1 });
     }
-    let img = image::open(path).map_err(|e| anyhow!("cannot decode image: {e}"))?;
+    let bytes = std::fs::read(path).map_err(|e| anyhow!("cannot read: {e}"))?;
+    decode_image(&bytes)
+}
+
+/// Largest frame side accepted: 16k pixels (a 16384 x 16384 f32 frame is 1 GiB already).
+const MAX_SIDE: u32 = 16384;
+/// Largest allocation the decoder may make for one frame.
+const MAX_DECODE_BYTES: u64 = 1 << 30;
+
+/// A PNG or TIFF frame from memory as (width, height, values in [0, 1]); the format is read
+/// from the bytes, and the decoder's allocations are bounded (frames are untrusted input).
+pub fn decode_bytes(bytes: &[u8]) -> Result<(usize, usize, Vec<f32>)> {
+    decode_image(bytes).map(|g| (g.w, g.h, g.data))
+}
+
+fn decode_image(bytes: &[u8]) -> Result<Gray> {
+    let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes)).with_guessed_format().map_err(|e| anyhow!("cannot read image: {e}"))?;
+    let mut limits = image::Limits::default();
+    limits.max_image_width = Some(MAX_SIDE);
+    limits.max_image_height = Some(MAX_SIDE);
+    limits.max_alloc = Some(MAX_DECODE_BYTES);
+    reader.limits(limits);
+    let img = reader.decode().map_err(|e| anyhow!("cannot decode image: {e}"))?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let channels = img.color().channel_count() as usize - usize::from(img.color().has_alpha());
     let data: Vec<f32> = match img {

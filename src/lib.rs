@@ -15,6 +15,7 @@ pub mod dataset;
 pub mod detect;
 pub mod metrics;
 pub mod frames;
+pub mod fuzz_targets;
 pub mod fsutil;
 pub mod inspect;
 pub mod ir;

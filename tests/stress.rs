@@ -17,6 +17,47 @@ fn compile(recipe: &str, out: &Path, extra: &[&str]) {
     assert_eq!(r.code, 0, "{}", r.stderr);
 }
 
+/// The scale of the image input's quantizer.
+fn image_scale(model: &Path) -> f32 {
+    let m = load(model);
+    let g = m.graph.unwrap();
+    let q = g.node.iter().find(|n| n.op_type == "QuantizeLinear" && n.input[0] == "image").expect("the image input is quantized");
+    let t = g.initializer.iter().find(|t| t.name == q.input[1]).unwrap();
+    pdi_compile::onnx::tensor_proto::to_tensor(t).unwrap().as_f32().unwrap()[0]
+}
+
+/// `calib_conditions` widens the ranges the stressed frames need (gain x2 saturates where
+/// clean frames stop), reports the held-out error under each condition, and refuses names
+/// it does not know and conditions a folded model cannot see.
+#[test]
+fn robust_calibration_covers_its_conditions() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let text = std::fs::read_to_string(repo().join("passes/detect-int8.yaml")).unwrap().replace("calib_frames: 64", "calib_frames: 16, analysis_frames: 4, held_out_frames: 4");
+    let with = |conditions: &str| {
+        let p = d.join(format!("r{}.yaml", conditions.len()));
+        std::fs::write(&p, text.replace("error_budget: 0.1}", &format!("error_budget: 0.1, calib_conditions: [{conditions}]}}"))).unwrap();
+        p
+    };
+    let plain = d.join("plain.yaml");
+    std::fs::write(&plain, &text).unwrap();
+    compile(plain.to_str().unwrap(), &d.join("plain"), &[]);
+    let robust = with("gain_x2");
+    let r = cli(&["compile", TINY, "--pipeline", robust.to_str().unwrap(), "--psf", PSF, "-o", d.join("robust").to_str().unwrap(), "--json"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    let q = &report["passes"].as_array().unwrap().last().unwrap()["details"];
+    assert_eq!(q["held_out_under_conditions"][0]["condition"], "gain_x2", "{q}");
+    assert!(q["held_out_under_conditions"][0]["worst_output_rel_l2"].as_f64().unwrap().is_finite());
+    let (a, b) = (image_scale(&d.join("plain/model.onnx")), image_scale(&d.join("robust/model.onnx")));
+    assert!(b > 1.2 * a, "gain x2 frames widen the image range: scale {a} -> {b}");
+    for (bad, says) in [("gain_x3", "no stress condition 'gain_x3'"), ("blur_shift_1", "changes the blur map")] {
+        let r = cli(&["compile", TINY, "--pipeline", with(bad).to_str().unwrap(), "--psf", PSF, "-o", d.join("bad").to_str().unwrap()]);
+        assert_eq!(r.code, 2, "{}", r.stderr);
+        assert!(r.stderr.contains(says) && r.stderr.trim().lines().count() == 1, "{}", r.stderr);
+    }
+}
+
 #[test]
 fn stress_measures_the_compiles_under_each_condition_and_gates_them() {
     let dir = tempfile::tempdir().unwrap();

@@ -51,6 +51,10 @@ pub struct Options {
     pub seed: u64,
     /// `qdq` (ONNX Runtime fuses it) or `qlinear` (convolutions as QLinearConv, for tract).
     pub format: Format,
+    /// Stress conditions (names from `passes/stress.yaml`) mixed into the calibration set:
+    /// calibration frame i is clean when i % (n + 1) == 0, else under condition i % (n + 1) - 1,
+    /// so ranges cover what the deployment will meet. The held-out check runs under each.
+    pub calib_conditions: Vec<String>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -76,6 +80,7 @@ impl Default for Options {
             keep_float: Vec::new(),
             seed: 0,
             format: Format::Qdq,
+            calib_conditions: Vec::new(),
         }
     }
 }
@@ -115,6 +120,11 @@ impl Pass for Quantize {
         // Held-out frames come after the calibration frames; a folder too small for both
         // measures on its last calibration frames, and the report says so.
         let (held_out, overlap) = if feeds.len() > calib { (feeds.split_off(calib), false) } else { (feeds.iter().rev().take(o.held_out_frames.max(1)).cloned().collect(), true) };
+        let conditions = crate::stress::conditions::by_name(&o.calib_conditions)?;
+        if let Some(c) = conditions.iter().find(|c| c.changes_blur()) {
+            bail!("calib_conditions: '{}' changes the blur map, which the quantized model has folded in; pick conditions that change frames", c.name);
+        }
+        mix_conditions(&mut feeds, &conditions, o.seed);
         let analysis: Vec<_> = feeds.iter().take(o.analysis_frames.max(1)).cloned().collect();
 
         clock.lap("frames");
@@ -164,6 +174,12 @@ impl Pass for Quantize {
         layers.sort_by(|a, b| b.accumulated.map_or(b.alone.rel_l2, |e| e.rel_l2).total_cmp(&a.accumulated.map_or(a.alone.rel_l2, |e| e.rel_l2)));
         clock.lap("accumulated_errors");
         let outputs = attribution::output_errors(&float, &quantized, &held_out, threads, None)?;
+        let mut stressed = Vec::new();
+        for c in &conditions {
+            let frames: Vec<Vec<(String, crate::tensor::Tensor)>> = held_out.iter().enumerate().map(|(i, f)| f.iter().map(|(n, t)| (n.clone(), c.apply_tensor(t, o.seed ^ (i as u64 + 1) << 20))).collect()).collect();
+            let e = attribution::output_errors(&float, &quantized, &frames, threads, None)?;
+            stressed.push(serde_json::json!({ "condition": c.name, "worst_output_rel_l2": worst_rel_l2(&e) }));
+        }
         if emitted.biases_clamped > 0 {
             warnings.push(format!("{} int32 bias values were clamped (input x weight scale too small for the bias)", emitted.biases_clamped));
         }
@@ -194,11 +210,24 @@ impl Pass for Quantize {
             "float_nodes": float_nodes,
             "output_errors": outputs,
             "worst_output_rel_l2": worst_rel_l2(&outputs),
+            "calib_conditions": o.calib_conditions,
+            "held_out_under_conditions": stressed,
             "seconds": clock.laps,
             "calibrate_and_emit_seconds": clock.laps["frames"] + clock.laps["ranges"] + clock.laps["emit"],
             "layers_quantized": layers.len(),
             "layers": layers.iter().take(REPORTED_LAYERS).collect::<Vec<_>>(),
         }))
+    }
+}
+
+/// Puts calibration frame i under condition i % (n + 1) - 1 (frame 0 and every (n + 1)-th
+/// stay clean). Only the image input changes; it is the feeds' only input.
+fn mix_conditions(feeds: &mut [Vec<(String, crate::tensor::Tensor)>], conditions: &[crate::stress::conditions::Condition], seed: u64) {
+    let n = conditions.len() + 1;
+    for (i, f) in feeds.iter_mut().enumerate().filter(|(i, _)| i % n != 0) {
+        for (_, t) in f.iter_mut() {
+            *t = conditions[i % n - 1].apply_tensor(t, seed ^ i as u64);
+        }
     }
 }
 

@@ -21,6 +21,10 @@ const DEFAULT_SET: &str = include_str!("../../passes/stress.yaml");
 /// The lens whose map `other_lens` gives by default: the multi-element LWIR design.
 const OTHER_LENS: &str = include_str!("../../calib/lens_multi_lwir.yaml");
 
+/// Conditions one file may expand to: a sweep of thousands is a typo, and each costs a pass
+/// over every frame and candidate.
+const MAX_CONDITIONS: usize = 256;
+
 /// One value or a sweep of values.
 #[derive(Clone, Debug, Deserialize)]
 #[serde(untagged)]
@@ -133,30 +137,40 @@ pub fn load(path: Option<&Path>) -> Result<ConditionSet> {
         Some(p) => (std::fs::read_to_string(p).with_context(|| format!("cannot read condition file {}", p.display()))?, p.display().to_string()),
         None => (DEFAULT_SET.to_string(), "the shipped set (passes/stress.yaml)".to_string()),
     };
-    let file: File = yaml_serde::from_str(&text).map_err(|e| anyhow!("condition file {source}: {e}"))?;
+    let base = path.and_then(Path::parent).unwrap_or(Path::new("."));
+    let mut set = parse(&text, base).map_err(|e| anyhow!("condition file {source}: {e}"))?;
+    set.source = source;
+    Ok(set)
+}
+
+/// Conditions from YAML text; lens files resolve against `base`.
+pub fn parse(text: &str, base: &Path) -> Result<ConditionSet> {
+    let file: File = yaml_serde::from_str(text)?;
     if file.conditions.is_empty() {
-        bail!("condition file {source} lists no conditions; add at least one, e.g. - {{kind: clean}}");
+        bail!("no conditions listed; add at least one, e.g. - {{kind: clean}}");
     }
     if file.frames == Some(0) || file.frames.is_some_and(|n| n > 4096) {
-        bail!("condition file {source}: frames must be in 1..4096");
+        bail!("frames must be in 1..4096");
     }
-    let base = path.and_then(Path::parent).unwrap_or(Path::new("."));
     let mut conditions: Vec<Condition> = Vec::new();
     for spec in &file.conditions {
         for kind in expand(spec) {
-            validate(&kind).map_err(|e| anyhow!("condition file {source}: {e}"))?;
+            validate(&kind)?;
             let blur = match &kind {
                 Kind::OtherLens { lens } => Some(other_lens_map(lens.as_ref().map(|l| base.join(l)).as_deref())?),
                 _ => None,
             };
             let name = name(&kind, blur.as_ref().map(|_| lens_name(&kind, base)).transpose()?.as_deref());
             if conditions.iter().any(|c| c.name == name) {
-                bail!("condition file {source}: '{name}' is listed twice");
+                bail!("'{name}' is listed twice");
+            }
+            if conditions.len() >= MAX_CONDITIONS {
+                bail!("more than {MAX_CONDITIONS} conditions (sweeps included); split the file");
             }
             conditions.push(Condition { name, kind, blur });
         }
     }
-    Ok(ConditionSet { conditions, frames: file.frames, source })
+    Ok(ConditionSet { conditions, frames: file.frames, source: String::new() })
 }
 
 /// Conditions chosen by name from the shipped set (for `quantize: {calib_conditions: [...]}`).
@@ -295,6 +309,16 @@ impl Condition {
             _ => {}
         }
         m
+    }
+
+    /// A [1, 1, H, W] image under this condition, seeded.
+    pub fn apply_tensor(&self, t: &crate::tensor::Tensor, seed: u64) -> crate::tensor::Tensor {
+        let (h, w) = (t.shape[t.shape.len() - 2], t.shape[t.shape.len() - 1]);
+        let mut data = t.data.to_f64().into_iter().map(|v| v as f32).collect::<Vec<f32>>();
+        for plane in data.chunks_mut(h * w) {
+            self.apply(plane, h, w, &mut Rng::new(seed));
+        }
+        crate::tensor::Tensor::f32(t.shape.clone(), data)
     }
 
     /// Applies the condition to one `h x w` frame (values in [0, 1]) in place.

@@ -19,7 +19,6 @@ use crate::frames::Frame;
 use crate::metrics::coco_map::coco_map;
 use crate::metrics::tensor_error::ErrorSums;
 use crate::optics::blur_map::BlurMap;
-use crate::optics::rng::Rng;
 use crate::runtime::ort_runtime::OrtRuntime;
 use crate::runtime::Runtime;
 use crate::tensor::Tensor;
@@ -37,6 +36,9 @@ use std::time::Instant;
 
 /// Frames per condition when neither the request nor the condition file says.
 const DEFAULT_FRAMES: usize = 32;
+/// Fewer reference boxes than this make a condition's mAP agreement too coarse to rank
+/// (one box moves it by several points): such conditions are reported, never called worst.
+pub const MIN_REFERENCE_BOXES: usize = 20;
 
 pub struct StressRequest {
     pub reference: PathBuf,
@@ -92,6 +94,16 @@ pub struct ConditionReport {
     pub candidates: BTreeMap<String, Outcome>,
 }
 
+/// Each candidate's clean agreement and its worst condition (among those with at least
+/// MIN_REFERENCE_BOXES reference boxes).
+#[derive(Serialize)]
+pub struct Summary {
+    pub candidate: String,
+    pub clean: Option<f64>,
+    pub worst_condition: Option<String>,
+    pub worst_agreement: Option<f64>,
+}
+
 #[derive(Serialize)]
 pub struct StressReport {
     pub reference: String,
@@ -102,6 +114,7 @@ pub struct StressReport {
     pub threads: usize,
     pub seconds: f64,
     pub conditions: Vec<ConditionReport>,
+    pub summary: Vec<Summary>,
     pub checks: Vec<Check>,
     pub passed: bool,
 }
@@ -197,7 +210,7 @@ pub fn stress(req: &StressRequest) -> Result<StressReport> {
         let mut tallies: Vec<Tally> = cands.iter().map(|_| Tally::default()).collect();
         let (mut ref_dets, mut ref_nonfinite) = (Vec::new(), 0usize);
         for (k, f) in base.iter().enumerate() {
-            let frame = stressed(cond, f, h, w, req.seed ^ ((ci as u64) << 32 | k as u64));
+            let frame = stressed(cond, f, req.seed ^ ((ci as u64) << 32 | k as u64));
             let r = ref_rt.run(&feeds(&reference, &frame, map.as_ref())?)?;
             let rt = output(&r, &det)?;
             ref_nonfinite += rt.data.to_f64().iter().filter(|v| !v.is_finite()).count();
@@ -239,6 +252,7 @@ pub fn stress(req: &StressRequest) -> Result<StressReport> {
     }
     pb.finish_and_clear();
     let checks = req.gate.as_ref().map(|g| g.checks(&reports)).unwrap_or_default();
+    let summary = cands.iter().map(|c| summarize(&c.label, &reports)).collect();
     Ok(StressReport {
         reference: req.reference.display().to_string(),
         candidates: infos,
@@ -250,14 +264,23 @@ pub fn stress(req: &StressRequest) -> Result<StressReport> {
         passed: checks.iter().all(|c| c.passed),
         checks,
         conditions: reports,
+        summary,
     })
 }
 
+fn summarize(cand: &str, reports: &[ConditionReport]) -> Summary {
+    let clean = reports.iter().find(|c| c.name == "clean").and_then(|c| c.candidates.get(cand)?.agreement);
+    let worst = reports
+        .iter()
+        .filter(|c| c.reference_boxes >= MIN_REFERENCE_BOXES)
+        .filter_map(|c| Some((c.name.clone(), c.candidates.get(cand)?.agreement?)))
+        .min_by(|a, b| a.1.total_cmp(&b.1));
+    Summary { candidate: cand.to_string(), clean, worst_agreement: worst.as_ref().map(|w| w.1), worst_condition: worst.map(|w| w.0) }
+}
+
 /// `f` under `cond`, seeded per condition and frame.
-fn stressed(cond: &Condition, f: &Frame, h: usize, w: usize, seed: u64) -> Frame {
-    let mut data = f.image.as_f32().map(<[f32]>::to_vec).unwrap_or_default();
-    cond.apply(&mut data, h, w, &mut Rng::new(seed));
-    Frame { name: f.name.clone(), image: Tensor::f32(vec![1, 1, h, w], data), labels: None }
+fn stressed(cond: &Condition, f: &Frame, seed: u64) -> Frame {
+    Frame { name: f.name.clone(), image: cond.apply_tensor(&f.image, seed), labels: None }
 }
 
 fn output<'a>(outs: &'a [(String, Tensor)], name: &str) -> Result<&'a Tensor> {

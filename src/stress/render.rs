@@ -41,13 +41,19 @@ pub fn markdown(r: &StressReport) -> String {
     let _ = writeln!(s, "# Stress: {}\n", r.reference);
     let _ = writeln!(s, "{} frames per condition ({}); conditions from {}; {} thread(s), {:.0} s.\n", r.frames, r.frame_source, r.condition_source, r.threads, r.seconds);
     let _ = writeln!(s, "mAP@.5:.95 agreement with the reference's detections on the same stressed frames; in brackets the worst output group's rel L2, and NaN/Inf outputs where the reference's are finite.\n");
-    let head: Vec<String> = r.candidates.iter().map(|c| format!("{} ({:?})", c.label, c.precision).to_lowercase()).collect();
+    let head: Vec<String> = r.candidates.iter().map(|c| format!("{} ({})", c.label, format!("{:?}", c.precision).to_lowercase())).collect();
     let _ = writeln!(s, "| condition | reference boxes | {} |", head.join(" | "));
     let _ = writeln!(s, "|---|---:|{}", "---|".repeat(head.len()));
     for c in &r.conditions {
         let cells: Vec<String> = r.candidates.iter().map(|k| c.candidates.get(&k.label).map_or_else(|| c.skipped.clone().unwrap_or_default(), cell)).collect();
         let nan = if c.reference_nonfinite > 0 { format!(" (NaN/Inf outputs {})", c.reference_nonfinite) } else { String::new() };
         let _ = writeln!(s, "| {} | {}{nan} | {} |", c.name, c.reference_boxes, cells.join(" | "));
+    }
+    let _ = writeln!(s, "\nWorst condition per candidate (among those with at least {} reference boxes):\n", super::MIN_REFERENCE_BOXES);
+    let _ = writeln!(s, "| candidate | clean | worst condition | agreement |\n|---|---:|---|---:|");
+    let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.3}"));
+    for m in &r.summary {
+        let _ = writeln!(s, "| {} | {} | {} | {} |", m.candidate, f(m.clean), m.worst_condition.as_deref().unwrap_or("-"), f(m.worst_agreement));
     }
     if r.conditions.iter().any(|c| c.candidates.values().any(|o| o.layers.is_some())) {
         let _ = writeln!(s, "\n## Layers\n\nINT8: the worst layer's share of values beyond its calibrated range (they clip). FP16: the worst layer's max |a| / 65504 (1 overflows).\n");
@@ -69,7 +75,7 @@ pub fn markdown(r: &StressReport) -> String {
             let _ = writeln!(s, "| {} | {} |", c.name, cells.join(" | "));
         }
     }
-    let _ = writeln!(s, "\n## What breaks\n\nA candidate breaks under a condition when its agreement falls more than {BREAK_DROP} below its own on clean frames, or when it gives NaN/Inf where the reference does not.\n");
+    let _ = writeln!(s, "\n## What breaks\n\nA candidate breaks under a condition when its agreement falls more than {BREAK_DROP} below its own on clean frames (conditions with at least {} reference boxes), or when it gives NaN/Inf where the reference does not.\n", super::MIN_REFERENCE_BOXES);
     let broken = breaks(r);
     if broken.is_empty() {
         let _ = writeln!(s, "Nothing: every candidate holds under every condition.");
@@ -91,9 +97,10 @@ pub fn markdown(r: &StressReport) -> String {
 pub fn breaks(r: &StressReport) -> Vec<String> {
     let mut out = Vec::new();
     for c in r.conditions.iter().filter(|c| c.name != "clean") {
+        let rankable = c.reference_boxes >= super::MIN_REFERENCE_BOXES;
         for (cand, o) in &c.candidates {
             let base = clean(r, cand).and_then(|b| b.agreement);
-            let dropped = matches!((o.agreement, base), (Some(a), Some(b)) if b - a > BREAK_DROP);
+            let dropped = rankable && matches!((o.agreement, base), (Some(a), Some(b)) if b - a > BREAK_DROP);
             if !dropped && o.extra_nonfinite == 0 {
                 continue;
             }
