@@ -191,3 +191,28 @@ fn bad_calibration_frames_are_refused_naming_the_file() {
         assert!(!out.join("model.onnx").exists(), "{name}: wrote a model");
     }
 }
+
+/// Frames of another size are area-resized and colour frames converted, each with one
+/// warning on stderr that also lands in the report's top-level `warnings`, as does the
+/// warning for a folder with fewer frames than the pass asked for.
+#[test]
+fn odd_calibration_frames_are_converted_with_warnings() {
+    let dir = tempfile::tempdir().unwrap();
+    let calib = dir.path().join("calib");
+    std::fs::create_dir_all(&calib).unwrap();
+    for i in 0..3u32 {
+        let rgb = image::RgbImage::from_fn(320, 240, |x, y| image::Rgb([((x + i) % 256) as u8, (y % 256) as u8, ((x * y) % 256) as u8]));
+        rgb.save(calib.join(format!("{i}.png"))).unwrap();
+    }
+    let recipe = dir.path().join("int8.yaml");
+    std::fs::write(&recipe, std::fs::read_to_string(repo().join("passes/detect-int8.yaml")).unwrap().replace("calib_frames: 64", "calib_frames: 4, analysis_frames: 2, held_out_frames: 2")).unwrap();
+    let out = dir.path().join("out");
+    let r = cli(&["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "--calib", calib.to_str().unwrap(), "-o", out.to_str().unwrap(), "--json"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    let warnings = report["warnings"].to_string();
+    for says in ["area-resized", "converted to luma", "holds 3 frame(s)"] {
+        assert!(r.stderr.contains(says), "stderr says '{says}': {}", r.stderr);
+        assert!(warnings.contains(says), "report warnings say '{says}': {warnings}");
+    }
+}
