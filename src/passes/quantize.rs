@@ -8,7 +8,8 @@
 //! scale and a warning).
 //! Reports: the range method and frames, warnings, every quantized layer's error against
 //! float alone and accumulated (worst first), the bias shifts corrected, the layers mixed
-//! precision kept float and why, and the outputs' error per channel group on held-out frames.
+//! precision kept float and why, and the outputs' error per channel group on held-out frames
+//! (and under each of `calib_conditions`, the stress conditions mixed into calibration).
 
 use crate::calib_frames::image_feeds;
 use crate::ir::{infer, Graph};
