@@ -59,7 +59,7 @@ pub fn infer(g: &Graph) -> Inferred {
     }
     for (name, t) in &g.initializers {
         cx.types.insert(name.to_string(), ValueType { dtype: DType::from_onnx(t.data_type), shape: Some(t.dims.clone()) });
-        if t.dims.iter().product::<i64>() <= MAX_CONST_ELEMS as i64 {
+        if product(&t.dims).is_some_and(|n| n <= MAX_CONST_ELEMS as i64) {
             if let Ok(c) = to_tensor(t) {
                 cx.consts.insert(name.to_string(), c);
             }
@@ -198,21 +198,30 @@ fn broadcast_all(ts: &[ValueType]) -> Option<Vec<i64>> {
     Some(acc)
 }
 
+/// The product of known dims; None when one is unknown or the product overflows (untrusted
+/// files carry any dims; a wrapped product would be a wrong shape, not an error).
+pub(crate) fn product(dims: &[i64]) -> Option<i64> {
+    dims.iter().try_fold(1i64, |a, &d| if d < 0 { None } else { a.checked_mul(d) })
+}
+
 fn spatial_out(inp: i64, k: i64, stride: i64, dil: i64, pad: i64, ceil: bool) -> i64 {
-    if inp < 0 {
+    if inp < 0 || stride <= 0 {
         return -1;
     }
-    let eff = (k - 1) * dil + 1;
-    let num = inp + pad - eff;
-    if num < 0 {
-        return 0;
-    }
-    let mut o = if ceil { (num + stride - 1) / stride + 1 } else { num / stride + 1 };
-    // ONNX/PyTorch rule: the last window must start inside the input or left padding.
-    if ceil && (o - 1) * stride >= inp + pad / 2 {
-        o -= 1;
-    }
-    o
+    (|| {
+        let eff = k.checked_sub(1)?.checked_mul(dil)?.checked_add(1)?;
+        let num = inp.checked_add(pad)?.checked_sub(eff)?;
+        if num < 0 {
+            return Some(0);
+        }
+        let mut o = if ceil { num.checked_add(stride - 1)? / stride + 1 } else { num / stride + 1 };
+        // ONNX/PyTorch rule: the last window must start inside the input or left padding.
+        if ceil && (o - 1).checked_mul(stride)? >= inp.checked_add(pad / 2)? {
+            o -= 1;
+        }
+        Some(o)
+    })()
+    .unwrap_or(-1)
 }
 
 fn window_out(node: &NodeProto, x: &[i64], kernel: &[i64], ceil: bool) -> Vec<i64> {
@@ -256,7 +265,7 @@ fn conv_transpose(node: &NodeProto, x: &ValueType, w: &ValueType) -> ValueType {
         let ws = w.shape.as_ref().filter(|s| s.len() == xs.len())?;
         let n = ws.len().checked_sub(2)?;
         let group = attr::int(node, "group", 1);
-        let mut out = vec![xs[0], ws[1] * group];
+        let mut out = vec![xs[0], ws[1].checked_mul(group).unwrap_or(-1)];
         if let Some(os) = attr::ints(node, "output_shape") {
             out.extend(os.iter().skip(os.len().saturating_sub(n)));
             return Some(out);
@@ -275,9 +284,9 @@ fn conv_transpose(node: &NodeProto, x: &ValueType, w: &ValueType) -> ValueType {
             out.push(if inp < 0 {
                 -1
             } else if auto.starts_with("SAME") {
-                inp * s[i]
+                inp.checked_mul(s[i]).unwrap_or(-1)
             } else {
-                s[i] * (inp - 1) + op[i] + (k[i] - 1) * d[i] + 1 - p[i] - p[i + n]
+                (|| s[i].checked_mul(inp - 1)?.checked_add(op[i])?.checked_add((k[i].checked_sub(1)?).checked_mul(d[i])?)?.checked_add(1)?.checked_sub(p[i])?.checked_sub(p[i + n]))().unwrap_or(-1)
             });
         }
         Some(out)
@@ -304,7 +313,7 @@ fn concat(node: &NodeProto, ins: &[ValueType]) -> ValueType {
         out[axis] = 0;
         for t in ins {
             let d = *t.shape.as_ref()?.get(axis)?;
-            out[axis] = if d < 0 || out[axis] < 0 { -1 } else { out[axis] + d };
+            out[axis] = if d < 0 || out[axis] < 0 { -1 } else { out[axis].checked_add(d).unwrap_or(-1) };
         }
         Some(out)
     })();
@@ -320,7 +329,7 @@ fn split(node: &NodeProto, x: &ValueType, split_input: Option<Vec<i64>>) -> Vec<
         if total < 0 {
             return vec![-1; n];
         }
-        let chunk = (total + n as i64 - 1) / n as i64; // opset 18 num_outputs: last chunk smaller
+        let chunk = total / n as i64 + i64::from(total % n as i64 != 0); // opset 18 num_outputs: last chunk smaller
         (0..n as i64).map(|i| chunk.min(total - i * chunk).max(0)).collect()
     });
     sizes.iter().map(|&s| {
@@ -362,7 +371,10 @@ fn slice(node: &NodeProto, x: &ValueType, starts: Option<Vec<i64>>, ends: Option
             } else {
                 (clampi(fix(starts[i]), -1, dim - 1), clampi(fix(*ends.get(i)?), -1, dim - 1))
             };
-            out[a] = if step > 0 { ((e - s + step - 1) / step).max(0) } else { ((s - e + (-step) - 1) / (-step)).max(0) };
+            // s and e are clamped into [-1, dim]; a step of any size only needs its sign and magnitude.
+            let stride = step.checked_abs().unwrap_or(i64::MAX);
+            let span = if step > 0 { e - s } else { s - e };
+            out[a] = if span <= 0 { 0 } else { (span - 1) / stride + 1 };
         }
         Some(out)
     })();
@@ -374,8 +386,8 @@ fn reshape(x: &ValueType, target: &[i64], allowzero: bool) -> Option<Vec<i64>> {
         if d == 0 && !allowzero { x.shape.as_ref().and_then(|s| s.get(i).copied()).unwrap_or(-1) } else { d }
     }).collect();
     if let Some(pos) = target.iter().position(|&d| d == -1) {
-        let total: Option<i64> = x.shape.as_ref().and_then(|s| s.iter().try_fold(1i64, |a, &d| (d >= 0).then(|| a * d)));
-        let known: i64 = out.iter().enumerate().filter(|&(i, _)| i != pos).map(|(_, &d)| d).product();
+        let total: Option<i64> = x.shape.as_ref().and_then(|s| product(s));
+        let known: i64 = out.iter().enumerate().filter(|&(i, _)| i != pos).try_fold(1i64, |a, (_, &d)| a.checked_mul(d)).unwrap_or(-1);
         out[pos] = match total {
             Some(t) if known > 0 && out.iter().enumerate().all(|(i, &d)| i == pos || d >= 0) => t / known,
             _ => -1,
@@ -425,7 +437,7 @@ fn flatten(node: &NodeProto, x: &ValueType) -> ValueType {
     let shape = x.shape.as_ref().map(|xs| {
         let a = attr::int(node, "axis", 1);
         let a = if a < 0 { a + xs.len() as i64 } else { a } as usize;
-        let prod = |s: &[i64]| if s.iter().any(|&d| d < 0) { -1 } else { s.iter().product() };
+        let prod = |s: &[i64]| product(s).unwrap_or(-1);
         vec![prod(&xs[..a.min(xs.len())]), prod(&xs[a.min(xs.len())..])]
     });
     ValueType { dtype: x.dtype, shape }
@@ -606,7 +618,7 @@ fn pad(node: &NodeProto, x: &ValueType, pads_in: Option<Vec<i64>>) -> ValueType 
         if node.input.get(3).is_some_and(|s| !s.is_empty()) {
             return None; // axes input: rare; leave unknown rather than guess
         }
-        (0..n).map(|i| Some(if xs[i] < 0 { -1 } else { xs[i] + pads.get(i)? + pads.get(i + n)? })).collect::<Option<Vec<i64>>>()
+        (0..n).map(|i| Some(if xs[i] < 0 { -1 } else { xs[i].checked_add(*pads.get(i)?)?.checked_add(*pads.get(i + n)?)? })).collect::<Option<Vec<i64>>>()
     })();
     ValueType { dtype: x.dtype, shape }
 }
@@ -630,7 +642,9 @@ fn range(node: &NodeProto, cx: &mut Inferred) -> ValueType {
 fn depth_space(node: &NodeProto, x: &ValueType) -> ValueType {
     let b = attr::int(node, "blocksize", 1);
     let shape = x.shape.as_ref().filter(|s| b > 0 && s.len() == 4 && s.iter().all(|&d| d >= 0)).map(|s| {
-        if node.op_type == "DepthToSpace" { vec![s[0], s[1] / (b * b), s[2] * b, s[3] * b] } else { vec![s[0], s[1] * b * b, s[2] / b, s[3] / b] }
+        let m = |a: i64, b: i64| a.checked_mul(b).unwrap_or(-1);
+        let bb = b.checked_mul(b).unwrap_or(i64::MAX);
+        if node.op_type == "DepthToSpace" { vec![s[0], s[1] / bb, m(s[2], b), m(s[3], b)] } else { vec![s[0], m(s[1], bb), s[2] / b, s[3] / b] }
     });
     ValueType { dtype: x.dtype, shape }
 }
@@ -656,7 +670,7 @@ fn fold_int_consts(node: &NodeProto, cx: &mut Inferred) {
             let (t, target) = (get(0)?, get(1)?.as_i64s()?);
             let from = ValueType { dtype: Some(t.dtype()), shape: Some(t.shape.iter().map(|&d| d as i64).collect()) };
             let shape: Vec<usize> = reshape(&from, &target, false)?.iter().map(|&d| usize::try_from(d).ok()).collect::<Option<_>>()?;
-            (shape.iter().product::<usize>() == t.len()).then(|| Tensor::new(shape, t.data))
+            (shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)) == Some(t.len())).then(|| Tensor::new(shape, t.data))
         })(),
         "Cast" => get(0).filter(|t| t.as_i64s().is_some()).and_then(|t| {
             let to = DType::from_onnx(attr::int(node, "to", 0) as i32)?;

@@ -39,12 +39,14 @@ pub fn parse(b: &[u8]) -> Result<NpyArray> {
         bail!("Fortran-ordered .npy arrays are not supported; save with np.ascontiguousarray");
     }
     let shape_str = field("shape")?;
-    let inner = &shape_str[1..shape_str.find(')').ok_or_else(|| anyhow!("bad .npy shape"))?];
+    let open = shape_str.strip_prefix('(').ok_or_else(|| anyhow!("bad .npy shape: expected '(' after 'shape'"))?;
+    let inner = &open[..open.find(')').ok_or_else(|| anyhow!("bad .npy shape: no ')'"))?];
     let shape: Vec<usize> = inner.split(',').map(str::trim).filter(|s| !s.is_empty()).map(|s| s.parse().map_err(|_| anyhow!("bad .npy dimension '{s}'"))).collect::<Result<_>>()?;
     let n = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)).ok_or_else(|| anyhow!(".npy shape overflows"))?;
     let body = &b[start + hlen..];
-    if body.len() != n * size {
-        bail!(".npy body holds {} bytes, shape {shape:?} needs {}", body.len(), n * size);
+    let need = n.checked_mul(size).ok_or_else(|| anyhow!(".npy shape {shape:?} overflows"))?;
+    if body.len() != need {
+        bail!(".npy body holds {} bytes, shape {shape:?} needs {need}", body.len());
     }
     let data = if size == 4 {
         body.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
