@@ -97,9 +97,21 @@ pub fn image_feeds(graph: &Graph, inf: &Inferred, folder: Option<&Path>, n: usiz
         bail!("input '{}' has no calibration value; run bind-psf (with --psf) first", other.name);
     }
     let s = inf.shape(&image).ok_or_else(|| anyhow!("image input '{image}' has no static shape"))?;
-    if s[1] != 1 {
-        bail!("image input '{image}' has {} channels; calibration frames are single-channel thermal images", s[1]);
-    }
+    let channels = usize::try_from(s[1]).ok().filter(|&c| (1..=16).contains(&c)).ok_or_else(|| anyhow!("image input '{image}' has {} channels; expected 1 to 16", s[1]))?;
     let set = calibration_frames(folder, n, s[2], s[3], seed)?;
-    Ok((set.frames.into_iter().map(|f| vec![(image.clone(), f.image)]).collect(), set.source))
+    if channels > 1 {
+        crate::warn::warn(format!("image input '{image}' takes {channels} channels; each single-channel calibration frame is replicated into all of them (thermal frames stored as RGB)"));
+    }
+    Ok((set.frames.into_iter().map(|f| vec![(image.clone(), replicate(&f.image, channels))]).collect(), set.source))
+}
+
+/// A [1, 1, H, W] frame repeated into [1, C, H, W].
+pub fn replicate(frame: &Tensor, channels: usize) -> Tensor {
+    if channels == 1 {
+        return frame.clone();
+    }
+    let plane = frame.as_f32().unwrap_or_default();
+    let mut shape = frame.shape.clone();
+    shape[1] = channels;
+    Tensor::f32(shape, plane.repeat(channels))
 }

@@ -216,3 +216,43 @@ fn odd_calibration_frames_are_converted_with_warnings() {
         assert!(warnings.contains(says), "report warnings say '{says}': {warnings}");
     }
 }
+
+/// A model whose image input takes three channels (thermal frames stored as RGB, averaged in
+/// the graph): INT8 calibrates on single-channel frames replicated into the three channels,
+/// with a warning, and verify feeds it replicated frames against the single-channel original.
+#[test]
+fn a_three_channel_input_is_fed_replicated_frames() {
+    use pdi_compile::onnx::proto::{AttributeProto, DimensionValue, NodeProto, TypeValue};
+    let dir = tempfile::tempdir().unwrap();
+    let mut m = load(&repo().join("models/trained/pdinet_v5_tiny_trained.onnx"));
+    let g = m.graph.as_mut().unwrap();
+    for n in &mut g.node {
+        n.input.iter_mut().filter(|i| *i == "image").for_each(|i| *i = "image_gray".into());
+    }
+    let Some(TypeValue::TensorType(t)) = g.input[0].r#type.as_mut().unwrap().value.as_mut() else { panic!("tensor input") };
+    t.shape.as_mut().unwrap().dim[1].value = Some(DimensionValue::DimValue(3));
+    let ints = AttributeProto { name: "axes".into(), r#type: 7, ints: vec![1], ..Default::default() };
+    let keep = AttributeProto { name: "keepdims".into(), r#type: 2, i: Some(1), ..Default::default() };
+    g.node.insert(0, NodeProto { name: "to_gray".into(), op_type: "ReduceMean".into(), input: vec!["image".into()], output: vec!["image_gray".into()], attribute: vec![ints, keep], ..Default::default() });
+    let rgb = dir.path().join("rgb.onnx");
+    pdi_compile::onnx::save(&m, &rgb).unwrap();
+
+    let recipe = dir.path().join("int8.yaml");
+    std::fs::write(&recipe, std::fs::read_to_string(repo().join("passes/detect-int8.yaml")).unwrap().replace("calib_frames: 64", "calib_frames: 8, analysis_frames: 2, held_out_frames: 2")).unwrap();
+    let out = dir.path().join("out");
+    // strip-recon recognizes the reconstruction output by the input's shape, which no longer matches.
+    let r = cli(&["compile", rgb.to_str().unwrap(), "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "--keep-outputs", "detections", "-o", out.to_str().unwrap()]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    assert!(r.stderr.contains("replicated"), "{}", r.stderr);
+    // Replication is exact: the lossless compile of the RGB-input model matches the original.
+    let f32 = dir.path().join("f32");
+    let r = cli(&["compile", rgb.to_str().unwrap(), "--pipeline", "passes/detect-f32.yaml", "--psf", "calib/single_lwir_blur.npy", "--keep-outputs", "detections", "-o", f32.to_str().unwrap()]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    for (candidate, max_rel_l2) in [(f32.join("model.onnx"), 1e-5), (out.join("model.onnx"), 1.0)] {
+        let v = cli(&["verify", "--reference", "models/trained/pdinet_v5_tiny_trained.onnx", "--candidate", candidate.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "--random", "4", "--runs", "0", "--no-tract", "--json"]);
+        assert_eq!(v.code, 0, "{}", v.stderr);
+        let report: serde_json::Value = serde_json::from_str(&v.stdout).unwrap();
+        let e = report["outputs"][0]["ort"]["rel_l2"].as_f64().unwrap();
+        assert!(e <= max_rel_l2, "{}: rel L2 {e}", candidate.display());
+    }
+}

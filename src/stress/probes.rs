@@ -53,8 +53,10 @@ pub struct LayerStats {
     pub worst: f64,
     pub mean: f64,
     pub layers: usize,
-    /// The worst layers, worst first.
+    /// The worst layers, worst first (what reports name).
     pub worst_layers: Vec<LayerValue>,
+    /// Every probed layer, worst first.
+    pub per_layer: Vec<LayerValue>,
 }
 
 /// A clip range [lo, hi] of one quantized value, and half a step of slack (values within it
@@ -134,7 +136,8 @@ impl Probe {
             worst: per.first().map_or(0.0, |l| l.value),
             mean,
             layers: per.len(),
-            worst_layers: per.into_iter().take(WORST_NAMED).collect(),
+            worst_layers: per.iter().take(WORST_NAMED).cloned().collect(),
+            per_layer: per,
         }
     }
 }

@@ -109,6 +109,8 @@ pub(crate) struct Side {
     pub(crate) image_input: String,
     pub(crate) other_inputs: Vec<String>,
     pub(crate) shape: (usize, usize),
+    /// Channels of the image input: single-channel frames are replicated into them.
+    pub(crate) channels: usize,
 }
 
 pub(crate) fn side(path: &std::path::Path, what: &str) -> Result<Side> {
@@ -119,7 +121,8 @@ pub(crate) fn side(path: &std::path::Path, what: &str) -> Result<Side> {
     let image_input = partition::image_input(&graph, &inf).ok_or_else(|| anyhow!("{what} {} has no [1, C, H, W] image input", path.display()))?;
     let s = inf.shape(&image_input).ok_or_else(|| anyhow!("{what}'s image input '{image_input}' has no static shape"))?;
     let other_inputs = graph.inputs.iter().map(|v| v.name.clone()).filter(|n| *n != image_input).collect();
-    Ok(Side { shape: (s[2], s[3]), image_input, other_inputs, model })
+    let channels = usize::try_from(s[1]).ok().filter(|&c| (1..=16).contains(&c)).ok_or_else(|| anyhow!("{what}'s image input '{image_input}' has {} channels; expected 1 to 16", s[1]))?;
+    Ok(Side { shape: (s[2], s[3]), channels, image_input, other_inputs, model })
 }
 
 /// The camera's blur map as the [1, 1, rows, cols] tensor a model with a blur input takes.
@@ -129,7 +132,7 @@ pub(crate) fn blur_input(path: &std::path::Path) -> Result<Tensor> {
 }
 
 pub(crate) fn feeds(side: &Side, frame: &Frame, psf: Option<&Tensor>) -> Result<Vec<(String, Tensor)>> {
-    let mut v = vec![(side.image_input.clone(), frame.image.clone())];
+    let mut v = vec![(side.image_input.clone(), crate::calib_frames::replicate(&frame.image, side.channels))];
     for n in &side.other_inputs {
         let p = psf.ok_or_else(|| anyhow!("input '{n}' needs a value: give the camera's blur map with --psf"))?;
         v.push((n.clone(), p.clone()));
