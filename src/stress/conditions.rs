@@ -314,7 +314,7 @@ impl Condition {
     /// A [1, 1, H, W] image under this condition, seeded.
     pub fn apply_tensor(&self, t: &crate::tensor::Tensor, seed: u64) -> crate::tensor::Tensor {
         let (h, w) = (t.shape[t.shape.len() - 2], t.shape[t.shape.len() - 1]);
-        let mut data = t.data.to_f64().into_iter().map(|v| v as f32).collect::<Vec<f32>>();
+        let mut data = t.as_f32().map_or_else(|| t.data.to_f64().into_iter().map(|v| v as f32).collect(), <[f32]>::to_vec);
         for plane in data.chunks_mut(h * w) {
             self.apply(plane, h, w, &mut Rng::new(seed));
         }

@@ -12,7 +12,7 @@
 
 use super::ConditionReport;
 use crate::verify::gate::Check;
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{bail, Result};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -29,8 +29,7 @@ pub struct StressGate {
 
 impl StressGate {
     pub fn load(path: &Path) -> Result<StressGate> {
-        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read gate file {}", path.display()))?;
-        yaml_serde::from_str(&text).map_err(|e| anyhow!("gate file {}: {e}", path.display()))
+        crate::verify::gate::load_gate_file(path)
     }
 
     /// Every threshold against every gated condition and candidate. A condition named in the

@@ -13,6 +13,7 @@ use crate::runtime::Runtime;
 use crate::tensor::{Tensor, TensorData};
 use anyhow::Result;
 use serde::Serialize;
+use std::collections::HashMap;
 
 /// The largest finite f16.
 const F16_MAX: f64 = 65504.0;
@@ -72,8 +73,8 @@ pub struct Probe {
     rt: OrtRuntime,
     precision: Precision,
     clips: Vec<Clip>,
-    /// Per value: (beyond or max |a|, count) accumulated since the last `take`.
-    acc: Vec<(String, f64, u64)>,
+    /// Per value: (values beyond the range, or max |a|; values seen) since the last `take`.
+    acc: HashMap<String, (f64, u64)>,
 }
 
 impl Probe {
@@ -94,27 +95,29 @@ impl Probe {
         let inputs: Vec<&str> = g.input.iter().map(|v| v.name.as_str()).collect();
         let values: Vec<String> = values.into_iter().filter(|v| !inputs.contains(&v.as_str())).collect();
         let rt = OrtRuntime::with_options(&expose_outputs(m, &values), ort::session::builder::GraphOptimizationLevel::Level3, threads)?;
-        Ok(Some(Probe { rt, precision, clips, acc: Vec::new() }))
+        Ok(Some(Probe { rt, precision, clips, acc: HashMap::new() }))
     }
 
     /// Runs one frame and accumulates every probed value.
     pub fn observe(&mut self, feeds: &[(String, Tensor)]) -> Result<()> {
-        let mut outs = self.rt.run(feeds)?;
-        outs.extend(feeds.iter().cloned());
+        let acc = &mut self.acc;
         match self.precision {
-            Precision::Int8 => {
+            // Quantizer inputs are f32: read them in place, as calibration does.
+            Precision::Int8 => self.rt.visit_f32(feeds, |outputs| {
+                let by_name: HashMap<&str, &[f32]> = outputs.iter().copied().chain(feeds.iter().filter_map(|(n, t)| Some((n.as_str(), t.as_f32()?)))).collect();
                 for c in &self.clips {
-                    let Some((_, t)) = outs.iter().find(|(n, _)| *n == c.value) else { continue };
-                    let v = t.data.to_f64();
-                    let beyond = v.iter().filter(|&&x| x < c.lo - c.slack || x > c.hi + c.slack).count();
-                    add(&mut self.acc, &c.value, beyond as f64, v.len() as u64, false);
+                    let Some(v) = by_name.get(c.value.as_str()) else { continue };
+                    let beyond = v.iter().filter(|&&x| (x as f64) < c.lo - c.slack || (x as f64) > c.hi + c.slack).count();
+                    let slot = acc.entry(c.value.clone()).or_default();
+                    *slot = (slot.0 + beyond as f64, slot.1 + v.len() as u64);
                 }
-            }
+            })?,
             Precision::Fp16 => {
-                for (name, t) in &outs {
+                for (name, t) in self.rt.run(feeds)? {
                     if let TensorData::F16(v) = &t.data {
                         let peak = v.iter().map(|x| f64::from(x.to_f32()).abs()).filter(|x| !x.is_nan()).fold(0.0, f64::max);
-                        add(&mut self.acc, name, peak, v.len() as u64, true);
+                        let slot = acc.entry(name).or_default();
+                        *slot = (slot.0.max(peak), slot.1 + v.len() as u64);
                     }
                 }
             }
@@ -127,7 +130,7 @@ impl Probe {
     pub fn take(&mut self) -> LayerStats {
         let mut per: Vec<LayerValue> = std::mem::take(&mut self.acc)
             .into_iter()
-            .map(|(layer, v, n)| LayerValue { layer, value: if self.precision == Precision::Int8 { v / n.max(1) as f64 } else { v / F16_MAX } })
+            .map(|(layer, (v, n))| LayerValue { layer, value: if self.precision == Precision::Int8 { v / n.max(1) as f64 } else { v / F16_MAX } })
             .collect();
         per.sort_by(|a, b| b.value.total_cmp(&a.value));
         let mean = per.iter().map(|l| l.value).sum::<f64>() / per.len().max(1) as f64;
@@ -139,17 +142,6 @@ impl Probe {
             worst_layers: per.iter().take(WORST_NAMED).cloned().collect(),
             per_layer: per,
         }
-    }
-}
-
-/// Sums `v` (or keeps its max) into `name`'s slot.
-fn add(acc: &mut Vec<(String, f64, u64)>, name: &str, v: f64, n: u64, max: bool) {
-    match acc.iter_mut().find(|(k, _, _)| k == name) {
-        Some(slot) => {
-            slot.1 = if max { slot.1.max(v) } else { slot.1 + v };
-            slot.2 += n;
-        }
-        None => acc.push((name.to_string(), v, n)),
     }
 }
 

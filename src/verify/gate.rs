@@ -27,9 +27,14 @@ pub struct Gate {
 
 impl Gate {
     pub fn load(path: &Path) -> Result<Gate> {
-        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read gate file {}", path.display()))?;
-        yaml_serde::from_str(&text).map_err(|e| anyhow!("gate file {}: {e}", path.display()))
+        load_gate_file(path)
     }
+}
+
+/// A gate file of any kind (verify's, stress's), with the messages both give.
+pub fn load_gate_file<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("cannot read gate file {}", path.display()))?;
+    yaml_serde::from_str(&text).map_err(|e| anyhow!("gate file {}: {e}", path.display()))
 }
 
 #[derive(Debug, Clone, Serialize)]
