@@ -60,7 +60,7 @@ fn runtimes(c: &mut Criterion) {
     g.sample_size(10);
     for (name, m) in &variants {
         for engine in [Engine::Ort, Engine::Tract] {
-            let mut rt = runtime::load(engine, m, &feeds).unwrap();
+            let mut rt = runtime::load(engine, m, &feeds, runtime::all_cores()).unwrap();
             g.bench_function(format!("{name}/{engine:?}"), |b| b.iter(|| rt.run(&feeds).unwrap()));
         }
     }

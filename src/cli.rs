@@ -62,6 +62,9 @@ pub enum Command {
         /// an NNEF archive when it loads faster, and DIR/tract.yaml.
         #[arg(long, value_enum, default_value_t)]
         target: crate::targets::Target,
+        /// Threads for ONNX Runtime and tract alike (default: every core).
+        #[arg(long)]
+        threads: Option<usize>,
         /// Print the report as JSON instead of a summary.
         #[arg(long)]
         json: bool,
@@ -159,6 +162,9 @@ pub enum Command {
         /// Skip the tract run.
         #[arg(long)]
         no_tract: bool,
+        /// Threads for ONNX Runtime and tract alike (default: every core).
+        #[arg(long)]
+        threads: Option<usize>,
         #[arg(long, default_value_t = 0)]
         seed: u64,
         #[arg(long)]
@@ -194,6 +200,40 @@ pub enum Command {
         /// Time budget of the pruned variants' recovery by distillation (default: the recipe's).
         #[arg(long)]
         recover_minutes: Option<f64>,
+        /// Threads for ONNX Runtime and tract alike (default: every core).
+        #[arg(long)]
+        threads: Option<usize>,
+        #[arg(long)]
+        json: bool,
+    },
+    /// The deployment artifacts of one trained model, measured: DIR/f32 (lossless, tract),
+    /// DIR/pruned-f32 (pruned and recovered), DIR/pruned-int8 (tract), DIR/rknn (the NPU's
+    /// folder); one table of size, MACs, ORT and tract latency, mAP; DIR/ship.json.
+    Ship {
+        model: PathBuf,
+        #[arg(short = 'o', long = "out")]
+        out: PathBuf,
+        /// Camera blur map for models that take it as an input.
+        #[arg(long)]
+        psf: Option<PathBuf>,
+        /// Calibration frames for pruning, recovery and quantization; simulated when not given.
+        #[arg(long)]
+        calib: Option<PathBuf>,
+        /// Frames to check on; YOLO labels beside them give mAP against labels.
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Simulated frames to check on when no --data is given.
+        #[arg(long, default_value_t = 16)]
+        frames: usize,
+        /// Time budget of the recovery by distillation (default: the recipe's 15 minutes).
+        #[arg(long)]
+        recover_minutes: Option<f64>,
+        /// Timed runs per model and engine.
+        #[arg(long, default_value_t = 20)]
+        runs: usize,
+        /// Threads for ONNX Runtime and tract alike (default: every core).
+        #[arg(long)]
+        threads: Option<usize>,
         #[arg(long)]
         json: bool,
     },
@@ -275,6 +315,15 @@ pub enum PsfCommand {
 }
 
 /// Parses "AxB" into (A, B).
+/// `--threads`, or every core; 0 is refused rather than read as "default".
+fn threads_or_all(threads: Option<usize>) -> Result<usize> {
+    match threads {
+        Some(0) => anyhow::bail!("--threads must be at least 1"),
+        Some(n) => Ok(n),
+        None => Ok(crate::runtime::all_cores()),
+    }
+}
+
 fn pair(s: &str, what: &str) -> Result<(usize, usize)> {
     let v: Vec<usize> = s.split('x').map(|p| p.trim().parse()).collect::<std::result::Result<_, _>>().map_err(|_| anyhow::anyhow!("{what} '{s}' is not AxB (e.g. 640x480)"))?;
     match v[..] {
@@ -308,9 +357,9 @@ pub fn run(cli: Cli) -> Result<u8> {
                 print!("{}", report.render());
             }
         }
-        Command::Compile { model, pipeline, out, psf, keep_outputs, calib, external_data, scene, target, json } => {
+        Command::Compile { model, pipeline, out, psf, keep_outputs, calib, external_data, scene, target, threads, json } => {
             let scene = scene.as_deref().map(crate::scene::Scene::load).transpose()?;
-            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib, keep_outputs, scene, ..Default::default() }, target };
+            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib, keep_outputs, scene, ..Default::default() }, target, threads: threads_or_all(threads)? };
             let r = compile(&req)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);
@@ -357,14 +406,14 @@ pub fn run(cli: Cli) -> Result<u8> {
             crate::fsutil::write_atomic(&out.join("dataset.yaml"), yaml_serde::to_string(&summary)?.as_bytes())?;
             println!("dataset {}: {} frames, {boxes} objects; degraded PSNR {:.2} dB", out.display(), s.frames, s.psnr_db);
         }
-        Command::Verify { reference, candidate, data, random, psf, gate, runs, no_tract, seed, json, junit } => {
+        Command::Verify { reference, candidate, data, random, psf, gate, runs, no_tract, threads, seed, json, junit } => {
             let gate = gate.map(|g| crate::verify::gate::Gate::load(&g)).transpose()?;
             if junit.is_some() && gate.is_none() {
                 anyhow::bail!("--junit reports the gate's checks; give --gate FILE too (e.g. passes/gate.yaml)");
             }
             let started = std::time::Instant::now();
             let suite = candidate.display().to_string();
-            let req = crate::verify::VerifyRequest { reference, candidate, data, random, psf, gate, latency_runs: runs, tract: !no_tract, seed };
+            let req = crate::verify::VerifyRequest { reference, candidate, data, random, psf, gate, latency_runs: runs, tract: !no_tract, seed, threads: threads_or_all(threads)? };
             let report = crate::verify::verify(&req)?;
             if let Some(path) = &junit {
                 crate::fsutil::write_atomic(path, crate::verify::junit::render(&suite, &report.checks, started.elapsed().as_secs_f64()).as_bytes())?;
@@ -378,13 +427,24 @@ pub fn run(cli: Cli) -> Result<u8> {
                 return Ok(EXIT_GATE_FAILED);
             }
         }
-        Command::Bench { model, out, psf, calib, data, frames, runs, tract_fp16, recover_minutes, json } => {
-            let r = crate::bench::bench(&crate::bench::BenchRequest { model, out: out.clone(), psf, calib, data, frames, runs, tract_fp16, recover_minutes })?;
+        Command::Bench { model, out, psf, calib, data, frames, runs, tract_fp16, recover_minutes, threads, json } => {
+            let r = crate::bench::bench(&crate::bench::BenchRequest { model, out: out.clone(), psf, calib, data, frames, runs, tract_fp16, recover_minutes, threads: threads_or_all(threads)? })?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);
             } else {
                 print!("{}", r.markdown());
                 println!("wrote {}", crate::bench::out_files(&out));
+            }
+        }
+        Command::Ship { model, out, psf, calib, data, frames, recover_minutes, runs, threads, json } => {
+            if runs == 0 || frames == 0 {
+                anyhow::bail!("--runs and --frames must be at least 1");
+            }
+            let r = crate::ship::ship(&crate::ship::ShipRequest { model, out, psf, calib, data, frames, recover_minutes, runs, threads: threads_or_all(threads)? })?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r)?);
+            } else {
+                print!("{}", r.render());
             }
         }
         Command::Stress { reference, candidates, psf, data, conditions, frames, gate, junit, seed, out, json } => {

@@ -28,6 +28,8 @@ pub struct CompileRequest {
     pub external_data: bool,
     pub context: PassContext,
     pub target: crate::targets::Target,
+    /// Threads of the target check's timed runs (tract and ONNX Runtime alike).
+    pub threads: usize,
 }
 
 #[derive(Serialize)]
@@ -63,7 +65,15 @@ pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
         crate::warn::warn(w.clone());
     }
     let mut model = loaded.model;
-    let passes = pipeline::run(&recipe, &mut model, &req.context)?;
+    // The tract target weighs INT8 against the float model it came from: keep that one.
+    let split = match req.target {
+        crate::targets::Target::Tract => recipe.passes.iter().position(|p| p.name == "quantize").unwrap_or(recipe.passes.len()),
+        _ => recipe.passes.len(),
+    };
+    let (head, tail) = recipe.passes.split_at(split);
+    let mut passes = pipeline::run(&Recipe { passes: head.to_vec(), ..recipe.clone() }, &mut model, &req.context)?;
+    let float = (!tail.is_empty()).then(|| model.clone());
+    passes.extend(pipeline::run(&Recipe { passes: tail.to_vec(), ..recipe.clone() }, &mut model, &req.context)?);
     // Passes list their warnings in their details; they join the top-level list (and stderr).
     for p in &passes {
         for w in p.details["warnings"].as_array().into_iter().flatten().filter_map(|w| w.as_str()) {
@@ -84,7 +94,11 @@ pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
     // The target check runs first: a model the target cannot take leaves no model.onnx behind.
     let target_check = match req.target {
         crate::targets::Target::Onnx => None,
-        crate::targets::Target::Tract => Some(serde_json::to_value(crate::targets::tract::write(&req.out_dir, &model)?)?),
+        crate::targets::Target::Tract => {
+            let (artifact, chosen) = crate::targets::tract::write(&req.out_dir, model, float, req.threads)?;
+            model = chosen;
+            Some(serde_json::to_value(artifact)?)
+        }
         crate::targets::Target::Rknn => Some(serde_json::to_value(crate::targets::rknn::write(&req.out_dir, &model, req.context.calib.as_deref())?)?),
     };
     let out_model = req.out_dir.join("model.onnx");

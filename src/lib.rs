@@ -28,6 +28,7 @@ pub mod quant;
 pub mod prune;
 pub mod runtime;
 pub mod scene;
+pub mod ship;
 pub mod stress;
 pub mod targets;
 pub mod tensor;

@@ -27,7 +27,7 @@ fn compile(model: &Path, psf: &Path, out: &Path) -> serde_json::Value {
 }
 
 fn detections(engine: Engine, model: &ModelProto, inputs: &[(String, Tensor)]) -> Tensor {
-    let out = runtime::load(engine, model, inputs).unwrap().run(inputs).unwrap();
+    let out = runtime::load(engine, model, inputs, 1).unwrap().run(inputs).unwrap();
     out.into_iter().find(|(n, _)| n == "detections").expect("detections output").1
 }
 

@@ -23,8 +23,8 @@ fn identity_compile_writes_folder_and_preserves_outputs() {
 
         let (a, b) = (load(&f), load(&out.join("model.onnx")));
         let inputs = inputs_for(&a, 99);
-        let ra = runtime::load(Engine::Ort, &a, &inputs).unwrap().run(&inputs).unwrap();
-        let rb = runtime::load(Engine::Ort, &b, &inputs).unwrap().run(&inputs).unwrap();
+        let ra = runtime::load(Engine::Ort, &a, &inputs, 1).unwrap().run(&inputs).unwrap();
+        let rb = runtime::load(Engine::Ort, &b, &inputs, 1).unwrap().run(&inputs).unwrap();
         for ((n, x), (_, y)) in ra.iter().zip(&rb) {
             assert!(x.bit_identical(y), "{n} differs");
         }

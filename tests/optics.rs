@@ -160,7 +160,7 @@ fn blur_map_upsample_matches_ort_resize() {
             ..Default::default()
         };
         let inputs = vec![("k".to_string(), Tensor::f32(vec![1, 1, 6, 8], map.clone()))];
-        let ort = runtime::load(Engine::Ort, &model, &inputs).unwrap().run(&inputs).unwrap().remove(0).1;
+        let ort = runtime::load(Engine::Ort, &model, &inputs, 1).unwrap().run(&inputs).unwrap().remove(0).1;
         let ours = resize_half_pixel(&map, 6, 8, oh, ow);
         let worst = ort.as_f32().unwrap().iter().zip(&ours).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
         assert!(worst <= 1e-6, "{oh}x{ow}: max abs {worst}");

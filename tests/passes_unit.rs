@@ -58,7 +58,7 @@ fn run_pipeline(model: &mut ModelProto, passes: &str) -> Vec<pipeline::PassRepor
 fn output(model: &ModelProto) -> Tensor {
     let x = Tensor::f32(vec![1, 2, 3, 3], (0..18).map(|i| i as f32 * 0.1 - 0.7).collect());
     let inputs = vec![("x".to_string(), x)];
-    runtime::load(Engine::Ort, model, &inputs).unwrap().run(&inputs).unwrap().remove(0).1
+    runtime::load(Engine::Ort, model, &inputs, 1).unwrap().run(&inputs).unwrap().remove(0).1
 }
 
 #[test]

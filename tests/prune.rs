@@ -156,8 +156,8 @@ proptest! {
         let compensate = if seed % 2 == 0 { "lstsq" } else { "none" };
         let report = prune(&mut pruned, ratio, round_to, compensate);
         let feeds = inputs_for(&original, seed);
-        let before = runtime::load(Engine::Ort, &original, &feeds).unwrap().run(&feeds).unwrap();
-        let after = runtime::load(Engine::Ort, &pruned, &feeds).unwrap_or_else(|e| panic!("ORT rejects the pruned model: {e:#}\n{report}")).run(&feeds).unwrap();
+        let before = runtime::load(Engine::Ort, &original, &feeds, 1).unwrap().run(&feeds).unwrap();
+        let after = runtime::load(Engine::Ort, &pruned, &feeds, 1).unwrap_or_else(|e| panic!("ORT rejects the pruned model: {e:#}\n{report}")).run(&feeds).unwrap();
         prop_assert_eq!(&before[0].1.shape, &after[0].1.shape);
         prop_assert!(after[0].1.as_f32().unwrap().iter().all(|v| v.is_finite()));
         let (cb, ca) = (report["channels_before"].as_u64().unwrap(), report["channels_after"].as_u64().unwrap());
@@ -173,8 +173,8 @@ fn zero_ratio_is_the_identity_and_bad_ratios_are_refused() {
     let report = prune(&mut same, 0.0, 1, "none");
     assert_eq!(report["channels_before"], report["channels_after"]);
     let feeds = inputs_for(&original, 1);
-    let a = runtime::load(Engine::Ort, &original, &feeds).unwrap().run(&feeds).unwrap();
-    let b = runtime::load(Engine::Ort, &same, &feeds).unwrap().run(&feeds).unwrap();
+    let a = runtime::load(Engine::Ort, &original, &feeds, 1).unwrap().run(&feeds).unwrap();
+    let b = runtime::load(Engine::Ort, &same, &feeds, 1).unwrap().run(&feeds).unwrap();
     assert!(a[0].1.bit_identical(&b[0].1));
     let recipe = Recipe::parse("name: t\npasses:\n  - prune: {ratio: 1.0}\n").unwrap();
     let err = run(&recipe, &mut original.clone(), &PassContext::default()).err().expect("ratio 1 is refused");
@@ -208,8 +208,8 @@ fn every_fixture_meets_the_size_targets_and_runs_alike_on_ort_and_tract() {
         let image = &inputs_for(&m, 3)[0];
         let frame = pdi_compile::calib_frames::calibration_frames(None, 1, image.1.shape[2], image.1.shape[3], 3).unwrap().frames.remove(0);
         let feeds = vec![(image.0.clone(), frame.image)];
-        let ort = runtime::load(Engine::Ort, &load(&pruned), &feeds).unwrap().run(&feeds).unwrap();
-        let tract = runtime::load(Engine::Tract, &load(&pruned), &feeds).unwrap().run(&feeds).unwrap();
+        let ort = runtime::load(Engine::Ort, &load(&pruned), &feeds, 1).unwrap().run(&feeds).unwrap();
+        let tract = runtime::load(Engine::Tract, &load(&pruned), &feeds, 1).unwrap().run(&feeds).unwrap();
         for ((name, o), (_, t)) in ort.iter().zip(&tract) {
             let e = rel_l2(o, t);
             println!("{stem} {name}: tract vs ORT rel L2 {e:.2e}");

@@ -33,7 +33,7 @@ fn compile(model: &str, recipe: &str, out: &Path, extra: &[&str]) -> serde_json:
 fn run_candidate(path: &Path, engine: Engine) -> Vec<(String, pdi_compile::tensor::Tensor)> {
     let m = load(path);
     let inputs = inputs_for(&m, 3);
-    runtime::load(engine, &m, &inputs).unwrap().run(&inputs).unwrap()
+    runtime::load(engine, &m, &inputs, 1).unwrap().run(&inputs).unwrap()
 }
 
 fn scales_are_finite(path: &Path) {

@@ -18,7 +18,7 @@ fn inferred_shapes_match_ort_on_every_value() {
         let values: Vec<String> = g.node.iter().flat_map(|n| n.output.iter().cloned()).filter(|o| !o.is_empty()).collect();
         let exposed = pdi_compile::onnx::edit::expose_outputs(&model, &values);
         let inputs = inputs_for(&model, 5);
-        let out = runtime::load(Engine::Ort, &exposed, &inputs).unwrap().run(&inputs).unwrap();
+        let out = runtime::load(Engine::Ort, &exposed, &inputs, 1).unwrap().run(&inputs).unwrap();
         let mut checked = 0;
         for (name, t) in &out {
             let vt = inf.types.get(name).unwrap_or_else(|| panic!("{}: no type for {name}", f.display()));

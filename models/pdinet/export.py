@@ -6,6 +6,11 @@ synthetic thermal frames before export, so activations are never degenerate.
 
   python -m pdinet.export --out fixtures --width 0.0625 --size 256x192
   python -m pdinet.export --out /tmp/full --width 1.0 --size 640x480 --head v5 --psf input --opset 17
+
+Exports as other users make them (issue 19's fixtures), each on top of the variants above:
+  --detection-only   only the detection output (the reconstruction decoder never exported)
+  --channels 3       thermal frames stored as RGB (the first convolution takes 3 channels)
+  --constant-weights every initializer moved into a Constant node (Paddle / TensorFlow style)
 """
 import argparse
 import itertools
@@ -36,22 +41,57 @@ def calibrate_bn(model, frames, psf, steps=6):
     model.eval()
 
 
-def export_variant(out, head, psf_mode, opset, fold, width, size, seed):
+class DetectionOnly(torch.nn.Module):
+    """What a user exports when deployment needs no reconstruction."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def forward(self, image, psf_blur=None):
+        return self.model(image, psf_blur)[1]
+
+
+def export_variant(out, head, psf_mode, opset, fold, width, size, seed, channels=1, detection_only=False, constant_weights=False):
     w, h = size
     torch.manual_seed(seed)
     blur = torch.from_numpy(blur_map_radial())
-    model = PDINet(head=head, width=width, psf_blur=blur if psf_mode == "const" else None)
-    frames = [torch.from_numpy(f) for f in thermal_frames(6, 4, h, w, seed)]
+    model = PDINet(head=head, width=width, psf_blur=blur if psf_mode == "const" else None, in_ch=channels)
+    frames = [torch.from_numpy(f).expand(-1, channels, -1, -1).contiguous() for f in thermal_frames(6, 4, h, w, seed)]
     calibrate_bn(model, frames, blur.view(1, 1, 6, 8))
     image = frames[0][:1]
     args = (image,) if psf_mode == "const" else (image, blur.view(1, 1, 6, 8))
     names = ["image"] if psf_mode == "const" else ["image", "psf_blur"]
-    name = f"pdinet_{head}_{psf_mode}_op{opset}_{'fold' if fold else 'nofold'}.onnx"
+    suffix = ("_detonly" if detection_only else "") + (f"_{channels}ch" if channels != 1 else "") + ("_constw" if constant_weights else "")
+    name = f"pdinet_{head}_{psf_mode}_op{opset}_{'fold' if fold else 'nofold'}{suffix}.onnx"
     path = os.path.join(out, name)
-    torch.onnx.export(model, args, path, input_names=names, output_names=["recon", "detections"],
+    exported = DetectionOnly(model).eval() if detection_only else model
+    torch.onnx.export(exported, args, path, input_names=names, output_names=["detections"] if detection_only else ["recon", "detections"],
                       opset_version=opset, do_constant_folding=fold, dynamo=False)
+    if constant_weights:
+        initializers_to_constants(path)
     add_metadata(path, head, psf_mode, width, size)
     return path
+
+
+def initializers_to_constants(path):
+    """Every initializer becomes a Constant node at the top of the graph, as Paddle's and
+    tf2onnx's exporters write weights."""
+    import onnx
+
+    m = onnx.load(path)
+    g = m.graph
+    consts = [onnx.helper.make_node("Constant", [], [t.name], name=f"const_{i}", value=t) for i, t in enumerate(g.initializer)]
+    inits = {t.name for t in g.initializer}
+    kept_inputs = [v for v in g.input if v.name not in inits]
+    del g.initializer[:]
+    del g.input[:]
+    g.input.extend(kept_inputs)
+    nodes = consts + list(g.node)
+    del g.node[:]
+    g.node.extend(nodes)
+    onnx.checker.check_model(m)
+    onnx.save(m, path)
 
 
 def add_metadata(path, head, psf_mode, width, size):
@@ -83,13 +123,17 @@ def main():
     ap.add_argument("--opset", type=int, choices=[13, 17], action="append")
     ap.add_argument("--fold", choices=["on", "off"], action="append")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--channels", type=int, default=1)
+    ap.add_argument("--detection-only", action="store_true")
+    ap.add_argument("--constant-weights", action="store_true")
     a = ap.parse_args()
     size = tuple(int(v) for v in a.size.split("x"))
     os.makedirs(a.out, exist_ok=True)
     grid = itertools.product(a.head or ["v5", "v8"], a.psf or ["input", "const"],
                              a.opset or [13, 17], a.fold or ["on", "off"])
     for head, psf, opset, fold in grid:
-        p = export_variant(a.out, head, psf, opset, fold == "on", a.width, size, a.seed)
+        p = export_variant(a.out, head, psf, opset, fold == "on", a.width, size, a.seed,
+                           a.channels, a.detection_only, a.constant_weights)
         print(f"{p}  {os.path.getsize(p) / 1e6:.2f} MB")
 
 

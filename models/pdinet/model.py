@@ -56,10 +56,10 @@ class ConvBlock(nn.Module):
 class UNet(nn.Module):
     """Encoder ConvBlocks 1-5, decoder with transposed-conv upsampling and skip concats."""
 
-    def __init__(self, base):
+    def __init__(self, base, in_ch=1):
         super().__init__()
         c = [base, base * 2, base * 4, base * 8, base * 16]
-        self.enc1 = ConvBlock(1, c[0])
+        self.enc1 = ConvBlock(in_ch, c[0])
         self.enc2 = ConvBlock(c[0], c[1])
         self.enc3 = ConvBlock(c[1], c[2])
         self.enc4 = ConvBlock(c[2], c[3])
@@ -72,7 +72,7 @@ class UNet(nn.Module):
         self.dec2 = ConvBlock(c[2], c[1])
         self.up1 = nn.ConvTranspose2d(c[1], c[0], 2, 2)
         self.dec1 = ConvBlock(c[1], c[0])
-        self.out = nn.Conv2d(c[0], 1, 1)
+        self.out = nn.Conv2d(c[0], in_ch, 1)
 
     def semi(self, x):
         """The semi-U-Net: ConvBlocks 1-3 (Strategy 3); returns the skips and the 1/4 feature."""
@@ -365,11 +365,12 @@ class DetectV8(nn.Module):
 
 # ---------------------------------------------------------------- PDI-Net
 class PDINet(nn.Module):
-    def __init__(self, head="v5", width=1.0, depth=1.0, nc=NUM_CLASSES, psf_blur=None):
-        """psf_blur: None -> the blur map is a forward() input; else a [6, 8] tensor baked in."""
+    def __init__(self, head="v5", width=1.0, depth=1.0, nc=NUM_CLASSES, psf_blur=None, in_ch=1):
+        """psf_blur: None -> the blur map is a forward() input; else a [6, 8] tensor baked in.
+        in_ch: image channels (3 for thermal frames stored as RGB, as FLIR ADAS's JPEGs are)."""
         super().__init__()
         base = ch(32, width)
-        self.unet = UNet(base)
+        self.unet = UNet(base, in_ch)
         c_sh = base * 4  # enc3 output, 1/4 scale
         self.bridge = PALSBridge(c_sh)
         widths = (ch(64, width), ch(128, width), ch(256, width), ch(512, width))

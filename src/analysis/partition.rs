@@ -39,7 +39,9 @@ pub fn partition(g: &Graph, inf: &Inferred) -> Partition {
     let (mut recon, mut det) = (Vec::new(), Vec::new());
     for o in &g.proto.output {
         let s = inf.types.get(&o.name).and_then(|t| t.shape.clone());
-        let image_like = matches!((&s, &image_shape), (Some(s), Some(i)) if s.len() == 4 && s[1..] == i[1..]);
+        // Frame-sized, with the input's channels or one (a thermal reconstruction of frames
+        // stored as RGB may come out grey).
+        let image_like = matches!((&s, &image_shape), (Some(s), Some(i)) if s.len() == 4 && s[2..] == i[2..] && (s[1] == i[1] || s[1] == 1));
         if image_like { recon.push(o.name.clone()) } else { det.push(o.name.clone()) }
     }
     let r = g.cone(recon.iter().map(|s| s.as_str()));

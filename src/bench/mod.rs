@@ -49,6 +49,8 @@ pub struct BenchRequest {
     pub tract_fp16: bool,
     /// Time budget of the pruned variants' recovery (the recipe's when None).
     pub recover_minutes: Option<f64>,
+    /// Threads of every timed session, ORT and tract alike.
+    pub threads: usize,
 }
 
 /// Whether tract computes f16 in hardware on this machine's architecture.
@@ -73,6 +75,7 @@ pub struct BenchReport {
     pub model: String,
     pub frames: String,
     pub runs: usize,
+    pub threads: usize,
     pub rows: Vec<Row>,
     /// Variant/engine pairs not measured, and why.
     pub not_measured: Vec<String>,
@@ -82,7 +85,7 @@ pub struct BenchReport {
 }
 
 /// `text` with every `recover` pass's time budget set to `minutes` (unchanged when None).
-fn with_recover_minutes(text: &str, minutes: Option<f64>) -> Result<String> {
+pub(crate) fn with_recover_minutes(text: &str, minutes: Option<f64>) -> Result<String> {
     let Some(minutes) = minutes else { return Ok(text.to_string()) };
     let mut r = Recipe::parse(text)?;
     for p in r.passes.iter_mut().filter(|p| p.name == "recover") {
@@ -137,6 +140,7 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
             external_data: false,
             context: PassContext { psf: req.psf.clone(), calib: req.calib.clone(), keep_outputs: None, ..Default::default() },
             target: crate::targets::Target::Onnx,
+            threads: req.threads,
         })
         .map_err(|e| anyhow!("compiling the {name} variant: {e:#}"))?;
         compile_seconds.push((name.to_string(), c.elapsed().as_secs_f64()));
@@ -164,6 +168,7 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
             latency_runs: 0,
             tract,
             seed: 0,
+            threads: req.threads,
         })
         .map_err(|e| anyhow!("measuring the {name} variant: {e:#}"))?;
         let worst = |f: &dyn Fn(&crate::verify::OutputReport) -> Option<f64>| r.outputs.iter().filter_map(f).fold(0.0, f64::max);
@@ -176,7 +181,7 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
         }
     }
     eprintln!("bench: timing the original and {} variant/engine pairs together, {} runs each", timed.len(), req.runs);
-    let latency = time_together(req, &timed)?;
+    let latency = time_together(&Timing { original: &req.model, timed: &timed, data: req.data.as_deref(), psf: req.psf.as_deref(), runs: req.runs, threads: req.threads })?;
     let original = latency[0];
     rows.insert(0, Row::new("original", "ort", 0.0, Some(1.0)));
     for (row, ms) in rows.iter_mut().zip(&latency) {
@@ -189,6 +194,7 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
         model: req.model.display().to_string(),
         frames: req.data.as_ref().map_or(format!("{} synthetic frames, seed 0", req.frames), |d| d.display().to_string()),
         runs: req.runs,
+        threads: req.threads,
         rows,
         not_measured,
         compile_seconds,
@@ -210,29 +216,40 @@ impl Row {
     }
 }
 
-/// Median milliseconds of the original on ORT, then of each of `timed`, all interleaved in
-/// one loop on the same frame.
-fn time_together(req: &BenchRequest, timed: &[(String, Engine, PathBuf)]) -> Result<Vec<f64>> {
-    let reference = crate::verify::side(&req.model, "original")?;
+/// What [`time_together`] times: the original on ORT, then each (label, engine, model).
+pub(crate) struct Timing<'a> {
+    pub original: &'a Path,
+    pub timed: &'a [(String, Engine, PathBuf)],
+    /// The frame: the first of this folder, or a simulated one.
+    pub data: Option<&'a Path>,
+    pub psf: Option<&'a Path>,
+    pub runs: usize,
+    pub threads: usize,
+}
+
+/// Median milliseconds of the original on ORT, then of each timed model, all interleaved in
+/// one loop on the same frame, every session on the same threads.
+pub(crate) fn time_together(t: &Timing) -> Result<Vec<f64>> {
+    let reference = crate::verify::side(t.original, "original")?;
     let (h, w) = reference.shape;
-    let frame = match &req.data {
+    let frame = match t.data {
         Some(d) => crate::frames::load_folder(d, h, w)?.swap_remove(0),
         None => crate::frames::synthetic(1, h, w, 0).swap_remove(0),
     };
-    let psf = req.psf.as_deref().map(crate::verify::blur_input).transpose()?;
+    let psf = t.psf.map(crate::verify::blur_input).transpose()?;
     let mut loaded: Vec<(String, Box<dyn Runtime>, Vec<(String, Tensor)>)> = Vec::new();
     let inputs = crate::verify::feeds(&reference, &frame, psf.as_ref())?;
-    loaded.push(("original/ort".into(), runtime::load(Engine::Ort, &reference.model, &inputs)?, inputs));
-    for (name, engine, path) in timed {
+    loaded.push(("original/ort".into(), runtime::load(Engine::Ort, &reference.model, &inputs, t.threads)?, inputs));
+    for (name, engine, path) in t.timed {
         let side = crate::verify::side(path, name)?;
         let inputs = crate::verify::feeds(&side, &frame, psf.as_ref())?;
-        loaded.push((format!("{name}/{engine:?}"), runtime::load(*engine, &side.model, &inputs)?, inputs));
+        loaded.push((format!("{name}/{engine:?}"), runtime::load(*engine, &side.model, &inputs, t.threads)?, inputs));
     }
     let mut models: Vec<(String, &mut dyn Runtime, Vec<(String, Tensor)>)> = Vec::new();
     for (n, rt, i) in loaded.iter_mut() {
         models.push((n.clone(), rt.as_mut(), std::mem::take(i)));
     }
-    let latency = crate::verify::latency::interleaved(&mut models, req.runs)?;
+    let latency = crate::verify::latency::interleaved(&mut models, t.runs)?;
     Ok(latency.into_iter().map(|l| l.median_ms).collect())
 }
 
@@ -249,7 +266,7 @@ fn mark_pareto(rows: &mut [Row]) {
 
 impl BenchReport {
     pub fn markdown(&self) -> String {
-        let mut s = format!("# pdi-compile bench: {}\n\n{} ; median of {} runs per model, all models interleaved in one loop.\n`*` marks the Pareto front (latency against rel L2 / against mAP agreement).\n\n", self.model, self.frames, self.runs);
+        let mut s = format!("# pdi-compile bench: {}\n\n{} ; median of {} runs per model on {} threads (ORT and tract alike), all models interleaved in one loop.\n`*` marks the Pareto front (latency against rel L2 / against mAP agreement).\n\n", self.model, self.frames, self.runs, self.threads);
         s += "| variant | engine | latency ms | vs original | rel L2 | mAP agreement |\n|---|---|---:|---:|---:|---:|\n";
         for r in &self.rows {
             let map = r.map_agreement.map_or("-".to_string(), |m| format!("{m:.4}{}", if r.pareto_map { " *" } else { "" }));

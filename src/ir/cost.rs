@@ -63,9 +63,13 @@ pub fn constants_of<'g>(node: &'g NodeProto, g: &Graph<'g>) -> Vec<(&'g str, u64
 
 fn numeric_constants<'a, 'g>(node: &'g NodeProto, g: &'a Graph<'g>) -> impl Iterator<Item = (&'g str, &'g crate::onnx::proto::TensorProto)> + use<'a, 'g> {
     node.input.iter().filter_map(|n| {
-        let t = g.initializers.get(n.as_str())?;
+        // Paddle and tf2onnx store weights in Constant nodes rather than initializers.
+        let t = match g.initializers.get(n.as_str()) {
+            Some(t) => *t,
+            None => g.producer_of(n).filter(|p| p.op_type == "Constant").and_then(|p| crate::onnx::attr::tensor(p, "value"))?,
+        };
         let counts = DType::from_onnx(t.data_type).is_some_and(|d| d.is_float() || matches!(d, DType::I8 | DType::U8));
-        counts.then_some((n.as_str(), *t))
+        counts.then_some((n.as_str(), t))
     })
 }
 

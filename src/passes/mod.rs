@@ -10,6 +10,7 @@ pub mod drop_strides;
 pub mod fold_bn;
 pub mod fold_constants;
 pub mod fold_psf_gates;
+pub mod promote_constants;
 pub mod prune;
 pub mod quantize;
 pub mod recover;
@@ -23,10 +24,11 @@ use crate::pipeline::{Pass, PassSpec};
 use anyhow::{anyhow, bail, Result};
 
 /// Every pass this build knows, by the name recipes use.
-pub const KNOWN: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "drop-classes", "drop-strides", "crop-roi", "prune", "recover", "quantize", "fp16", "rknn-legalize", "rknn-hybrid"];
+pub const KNOWN: &[&str] = &["promote-constants", "strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "drop-classes", "drop-strides", "crop-roi", "prune", "recover", "quantize", "fp16", "rknn-legalize", "rknn-hybrid"];
 
 pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
     Ok(match spec.name.as_str() {
+        "promote-constants" => Box::new(promote_constants::PromoteConstants),
         "strip-recon" => Box::new(strip_recon::StripRecon { options: options(spec)? }),
         "bind-psf" => Box::new(bind_psf::BindPsf { options: options(spec)? }),
         "fold-constants" => Box::new(fold_constants::FoldConstants { options: options(spec)? }),

@@ -149,6 +149,8 @@ impl Pass for Quantize {
         let (params, mut warnings) = activation_params(&graph, &values, &stats, o);
         let shifts = if o.bias_correction { bias_shifts(&graph, &base, &stats.channel_means, o.weight_bits)? } else { HashMap::new() };
         clock.lap("ranges");
+        let collection = collection_cost(&float, &feeds, &stats, threads)?;
+        clock.lap("plain_inference_for_comparison");
 
         let emit_with = |p: &Plan| emit(&float, p, &EmitOptions { params: &params, activations: o.activations, weight_bits: o.weight_bits, bias_shift: &shifts });
         let (quantized, emitted) = emit_with(&base)?;
@@ -213,12 +215,33 @@ impl Pass for Quantize {
             "worst_output_rel_l2": worst_rel_l2(&outputs),
             "calib_conditions": o.calib_conditions,
             "held_out_under_conditions": stressed,
+            "collection": collection,
             "seconds": clock.laps,
             "calibrate_and_emit_seconds": clock.laps["frames"] + clock.laps["ranges"] + clock.laps["emit"],
             "layers_quantized": layers.len(),
             "layers": layers.iter().take(REPORTED_LAYERS).collect::<Vec<_>>(),
         }))
     }
+}
+
+/// Frames timed plainly to put the range collection's cost in proportion (the same frames,
+/// threads and session options; a few suffice for a mean).
+const PLAIN_TIMED_FRAMES: usize = 8;
+
+/// What range collection cost per frame against the float model's plain inference.
+fn collection_cost(float: &ModelProto, feeds: &[Vec<(String, crate::tensor::Tensor)>], stats: &Statistics, threads: usize) -> Result<serde_json::Value> {
+    let n = feeds.len().max(1) as f64;
+    let plain = crate::quant::collect::plain_seconds_per_frame(float, feeds, threads, PLAIN_TIMED_FRAMES)?;
+    let per_frame = stats.seconds / n;
+    Ok(serde_json::json!({
+        "frames": feeds.len(),
+        "threads": threads,
+        "ms_per_frame": per_frame * 1e3,
+        "statistics_ms_per_frame": stats.statistics_seconds / n * 1e3,
+        "plain_inference_ms_per_frame": plain * 1e3,
+        "plain_frames_timed": feeds.len().min(PLAIN_TIMED_FRAMES),
+        "ratio_to_plain_inference": if plain > 0.0 { per_frame / plain } else { 0.0 },
+    }))
 }
 
 /// Puts calibration frame i under condition i % (n + 1) - 1 (frame 0 and every (n + 1)-th

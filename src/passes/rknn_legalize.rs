@@ -103,7 +103,7 @@ impl Pass for RknnLegalize {
 
         // One tract plan of the original decode serves the probe and the check.
         let zeros = zero_logits(&levels);
-        let mut tail = TractRuntime::new(&decode_tail(model, &decoded, &levels)?, &zeros).context("running the original decode on its own")?;
+        let mut tail = TractRuntime::new(&decode_tail(model, &decoded, &levels)?, &zeros, 1).context("running the original decode on its own")?;
         let layout = probe_layout(&mut tail, &zeros, kind, classes, reg_max, &levels)?;
         let decode_check = check_decode(&mut tail, &layout, &levels)?;
 

@@ -1,6 +1,7 @@
 //! `strip-recon`: keep only the detection outputs and what they need.
 //!
-//! Needs: the image input and a reconstruction output shaped like it (or `keep_outputs`).
+//! Needs: the image input; a reconstruction output is one frame-sized (or `keep_outputs`
+//! names what to keep). A model exported without one keeps every output, with a warning.
 //! Guarantees: the kept outputs are computed exactly as before; every node that only served
 //! the reconstruction decoder is gone. Reports: outputs removed and kept, nodes removed.
 
@@ -35,7 +36,10 @@ impl Pass for StripRecon {
                 let graph = Graph::build(g)?;
                 let p = partition::partition(&graph, &infer(&graph));
                 if p.recon_outputs.is_empty() {
-                    bail!("no output is shaped like the image input, so no reconstruction output was recognized; name the outputs to keep with --keep-outputs");
+                    crate::warn::warn(format!(
+                        "strip-recon: no output is frame-sized, so the model has no reconstruction output to strip; keeping every output ({}); name them with --keep-outputs to keep fewer",
+                        p.det_outputs.join(", ")
+                    ));
                 }
                 p.det_outputs
             }

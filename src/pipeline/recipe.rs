@@ -72,7 +72,7 @@ impl Recipe {
 /// Passes that change nothing a scene specialization depends on: the scene passes go after
 /// the longest run of these that opens a recipe (constants and gates folded), before
 /// pruning, quantization and target legalization, which then work on the smaller model.
-const BEFORE_SCENE: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce"];
+const BEFORE_SCENE: &[&str] = &["promote-constants", "strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce"];
 
 /// Recovery after a crop when the recipe has none: the cropped model starts next to the full
 /// one, so a gentler rate than pruning's (v8 width 0.25, 8 min on 2 cores: agreement 0.974 at

@@ -28,10 +28,16 @@ pub enum Engine {
     Tract,
 }
 
-/// Builds a session for `model`; `inputs` fixes the shapes for engines that want them up front.
-pub fn load(engine: Engine, model: &ModelProto, inputs: &[(String, Tensor)]) -> Result<Box<dyn Runtime>> {
+/// Builds a session for `model` on `threads` threads; `inputs` fixes the shapes for engines
+/// that want them up front. Wherever engines are compared they get the same thread count.
+pub fn load(engine: Engine, model: &ModelProto, inputs: &[(String, Tensor)], threads: usize) -> Result<Box<dyn Runtime>> {
     Ok(match engine {
-        Engine::Ort => Box::new(ort_runtime::OrtRuntime::new(model)?),
-        Engine::Tract => Box::new(tract_runtime::TractRuntime::new(model, inputs)?),
+        Engine::Ort => Box::new(ort_runtime::OrtRuntime::with_options(model, ort::session::builder::GraphOptimizationLevel::Level3, threads)?),
+        Engine::Tract => Box::new(tract_runtime::TractRuntime::new(model, inputs, threads)?),
     })
+}
+
+/// The default thread count for timed runs: every core the process may use.
+pub fn all_cores() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
 }

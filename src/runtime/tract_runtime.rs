@@ -5,10 +5,9 @@ use crate::onnx::proto::ModelProto;
 use crate::tensor::{Tensor, TensorData};
 use anyhow::{anyhow, bail, Result};
 use prost::Message;
-use std::sync::Arc;
-use tract_onnx::prelude::{
-    tvec, Datum, DatumType, Framework, InferenceFact, InferenceModelExt, IntoRunnable, IntoTValue, Tensor as TractTensor, TypedModel, TypedRunnableModel,
-};
+use std::sync::{Arc, Mutex};
+use tract_linalg::multithread::Executor;
+use tract_onnx::prelude::{tvec, Datum, DatumType, Framework, InferenceFact, InferenceModelExt, IntoTValue, RunOptions, Tensor as TractTensor, TypedModel, TypedRunnableModel};
 
 pub struct TractRuntime {
     plan: Arc<TypedRunnableModel>,
@@ -17,17 +16,35 @@ pub struct TractRuntime {
 }
 
 impl TractRuntime {
-    /// `inputs` gives the concrete type and shape of every graph input (tract optimizes for them).
-    pub fn new(model: &ModelProto, inputs: &[(String, Tensor)]) -> Result<TractRuntime> {
+    /// `inputs` gives the concrete type and shape of every graph input (tract optimizes for
+    /// them); `threads` sizes the pool its matrix products and element-wise ops run on.
+    pub fn new(model: &ModelProto, inputs: &[(String, Tensor)], threads: usize) -> Result<TractRuntime> {
         let (typed, input_names, output_names) = typed_model(model, inputs)?;
-        Self::from_typed(typed, input_names, output_names)
+        Self::from_typed(typed, input_names, output_names, threads)
     }
 
     /// A runtime for a model tract already holds (an NNEF archive, say).
-    pub fn from_typed(typed: TypedModel, input_names: Vec<String>, output_names: Vec<String>) -> Result<TractRuntime> {
-        let plan = typed.into_optimized().and_then(|m| m.into_runnable()).map_err(|e| anyhow!("tract cannot optimize the model: {e:#}"))?;
+    pub fn from_typed(typed: TypedModel, input_names: Vec<String>, output_names: Vec<String>, threads: usize) -> Result<TractRuntime> {
+        let options = RunOptions { executor: Some(executor(threads)), ..Default::default() };
+        let plan = typed.into_optimized().and_then(|m| m.into_runnable_with_options(&options)).map_err(|e| anyhow!("tract cannot optimize the model: {e:#}"))?;
         Ok(TractRuntime { plan, input_names, output_names })
     }
+}
+
+/// One rayon pool per thread count for the whole process: building a pool per session would
+/// spawn threads for every verify or bench variant.
+fn executor(threads: usize) -> Executor {
+    static POOLS: Mutex<Vec<(usize, Executor)>> = Mutex::new(Vec::new());
+    if threads <= 1 {
+        return Executor::SingleThread;
+    }
+    let mut pools = POOLS.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some((_, e)) = pools.iter().find(|(n, _)| *n == threads) {
+        return e.clone();
+    }
+    let e = Executor::multithread_with_name(threads, "pdi-tract");
+    pools.push((threads, e.clone()));
+    e
 }
 
 /// The decluttered typed model of `model` with its inputs fixed to the shapes of `inputs`,

@@ -27,7 +27,7 @@ pub struct Preview {
     pub rows: Vec<Row>,
 }
 
-const LOSSLESS: &[&str] = &["strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce"];
+const LOSSLESS: &[&str] = &["promote-constants", "strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce"];
 
 pub fn preview(model: &ModelProto, scene: &Scene, psf: Option<PathBuf>, calib: Option<PathBuf>) -> Result<Preview> {
     let recipe = |names: &[&str]| Recipe { name: "scene-preview".into(), description: String::new(), passes: names.iter().map(|n| PassSpec { name: n.to_string(), options: yaml_serde::Value::Null }).collect() };

@@ -4,6 +4,11 @@
 //! NNEF), tract's agreement with ONNX Runtime on a simulated camera frame, and which file to
 //! load. DIR/model.nnef.tar is kept only when it loads faster than the ONNX file (measured:
 //! it skips ONNX parsing, type inference and decluttering).
+//!
+//! An INT8 model is kept only where tract ran it faster than the float model it was quantized
+//! from, on the machine that compiles: tract's integer kernels do not beat its f32 ones
+//! everywhere (the trained width-0.25 v5 pruned at 256x192, 2 x86 cores: INT8 slower), and a
+//! deployment should not pay INT8's error for nothing. tract.yaml says which and why.
 
 use crate::calib_frames::calibration_frames;
 use crate::fsutil::write_atomic;
@@ -34,17 +39,42 @@ pub struct TractArtifact {
     pub nnef: String,
     /// Worst output rel L2 of tract against ONNX Runtime on the same frame.
     pub rel_l2_vs_ort: f64,
+    /// ONNX Runtime's median on the same frame and threads, for scale.
+    pub ort_run_ms: f64,
+    pub threads: usize,
+    /// For a quantized model: INT8 kept or replaced by its float model, with both timings.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub int8: Option<String>,
 }
 
-pub fn write(dir: &Path, model: &ModelProto) -> Result<TractArtifact> {
-    let feeds = fixed_inputs(model)?;
+/// Checks `model` on tract and writes DIR/tract.yaml (and the NNEF archive where it pays);
+/// returns the model to ship: `model`, or `float` (the model before quantization) where
+/// tract ran that faster.
+pub fn write(dir: &Path, model: ModelProto, float: Option<ModelProto>, threads: usize) -> Result<(TractArtifact, ModelProto)> {
+    let feeds = fixed_inputs(&model)?;
     let (name, frame) = feeds[0].clone();
+    let (model, int8) = match float.filter(|_| is_quantized(&model)) {
+        None => (model, None),
+        Some(float) => {
+            let (_, q_ms) = timed_runs(&mut TractRuntime::new(&model, &feeds, threads)?, &feeds)?;
+            let (_, f_ms) = timed_runs(&mut TractRuntime::new(&float, &feeds, threads)?, &feeds)?;
+            if q_ms < f_ms {
+                (model, Some(format!("kept: INT8 ran in {q_ms:.2} ms, its float model in {f_ms:.2} ms on this machine ({threads} threads)")))
+            } else {
+                let why = format!("replaced by its float model: INT8 ran in {q_ms:.2} ms, the float model in {f_ms:.2} ms on this machine ({threads} threads), so INT8 would cost accuracy for no speed");
+                crate::warn::warn(format!("tract target: {why}"));
+                (float, Some(why))
+            }
+        }
+    };
+    let model = &model;
 
     let t = Instant::now();
-    let mut from_onnx = TractRuntime::new(model, &feeds)?;
+    let mut from_onnx = TractRuntime::new(model, &feeds, threads)?;
     let onnx_load_ms = t.elapsed().as_secs_f64() * 1e3;
     let (tract_out, onnx_run_ms) = timed_runs(&mut from_onnx, &feeds)?;
-    let ort_out = OrtRuntime::new(model)?.run(&feeds)?;
+    let mut ort = OrtRuntime::with_options(model, ort::session::builder::GraphOptimizationLevel::Level3, threads)?;
+    let (ort_out, ort_run_ms) = timed_runs(&mut ort, &feeds)?;
     let rel_l2_vs_ort = tract_out.iter().zip(&ort_out).map(|((_, a), (_, b))| compare(&b.data.to_f64(), &a.data.to_f64()).rel_l2).fold(0.0, f64::max);
 
     let tar = dir.join("model.nnef.tar");
@@ -55,7 +85,7 @@ pub fn write(dir: &Path, model: &ModelProto) -> Result<TractArtifact> {
             let outputs: Vec<String> = model.graph.iter().flat_map(|g| &g.output).map(|o| o.name.clone()).collect();
             let t = Instant::now();
             let typed = nnef().model_for_path(&tar).map_err(|e| anyhow!("tract cannot read its NNEF archive: {e:#}"))?;
-            let mut from_nnef = TractRuntime::from_typed(typed, vec![name.clone()], outputs)?;
+            let mut from_nnef = TractRuntime::from_typed(typed, vec![name.clone()], outputs, threads)?;
             let load = t.elapsed().as_secs_f64() * 1e3;
             let (nnef_out, run) = timed_runs(&mut from_nnef, &feeds)?;
             let drift = tract_out.iter().zip(&nnef_out).map(|((_, a), (_, b))| compare(&a.data.to_f64(), &b.data.to_f64()).rel_l2).fold(0.0, f64::max);
@@ -81,9 +111,17 @@ pub fn write(dir: &Path, model: &ModelProto) -> Result<TractArtifact> {
         nnef_run_ms,
         nnef,
         rel_l2_vs_ort,
+        ort_run_ms,
+        threads,
+        int8,
     };
     write_atomic(&dir.join("tract.yaml"), yaml_serde::to_string(&artifact)?.as_bytes())?;
-    Ok(artifact)
+    Ok((artifact, model.clone()))
+}
+
+/// Whether the model computes in integers (QDQ or QLinear operators).
+fn is_quantized(model: &ModelProto) -> bool {
+    model.graph.iter().flat_map(|g| &g.node).any(|n| matches!(n.op_type.as_str(), "QuantizeLinear" | "DequantizeLinear" | "QLinearConv" | "QLinearMatMul"))
 }
 
 /// One simulated camera frame for the model's single image input, whose shape must be fixed.
@@ -124,7 +162,7 @@ fn write_nnef(model: &ModelProto, feeds: &[(String, Tensor)], tar: &Path) -> Res
 }
 
 /// Outputs of the first run and the median time of `RUNS` runs.
-fn timed_runs(rt: &mut TractRuntime, feeds: &[(String, Tensor)]) -> Result<(crate::runtime::NamedTensors, f64)> {
+fn timed_runs(rt: &mut dyn Runtime, feeds: &[(String, Tensor)]) -> Result<(crate::runtime::NamedTensors, f64)> {
     let out = rt.run(feeds)?;
     let mut times: Vec<f64> = (0..RUNS)
         .map(|_| {

@@ -48,6 +48,8 @@ pub struct VerifyRequest {
     pub latency_runs: usize,
     pub tract: bool,
     pub seed: u64,
+    /// Threads of every session, ORT and tract alike, so their latencies compare.
+    pub threads: usize,
 }
 
 #[derive(Serialize)]
@@ -100,6 +102,9 @@ pub struct VerifyReport {
     pub latency: Vec<latency::Latency>,
     /// Candidate / reference median on ORT (None when latency was not measured).
     pub latency_ratio: Option<f64>,
+    /// Candidate on tract / candidate on ORT, same threads, same loop.
+    pub tract_vs_ort_ratio: Option<f64>,
+    pub threads: usize,
     pub checks: Vec<Check>,
     pub passed: bool,
 }
@@ -178,9 +183,9 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
 
     let first_ref = feeds(&reference, &frames[0], psf.as_ref())?;
     let first_cand = feeds(&candidate, &crop(&frames[0])?, psf.as_ref())?;
-    let mut ref_rt = runtime::load(Engine::Ort, &reference.model, &first_ref)?;
-    let mut cand_rt = runtime::load(Engine::Ort, &candidate.model, &first_cand)?;
-    let mut tract_rt = if req.tract { Some(runtime::load(Engine::Tract, &candidate.model, &first_cand)?) } else { None };
+    let mut ref_rt = runtime::load(Engine::Ort, &reference.model, &first_ref, req.threads)?;
+    let mut cand_rt = runtime::load(Engine::Ort, &candidate.model, &first_cand, req.threads)?;
+    let mut tract_rt = if req.tract { Some(runtime::load(Engine::Tract, &candidate.model, &first_cand, req.threads)?) } else { None };
 
     let n_out = compared.len();
     let (mut ref_vals, mut cand_vals, mut tract_vals) = (vec![Vec::new(); n_out], vec![Vec::new(); n_out], vec![Vec::new(); n_out]);
@@ -272,6 +277,7 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
         latency::interleaved(&mut models, req.latency_runs)?
     };
     let latency_ratio = (latency.len() >= 2).then(|| latency[1].median_ms / latency[0].median_ms);
+    let tract_vs_ort_ratio = (latency.len() >= 3).then(|| latency[2].median_ms / latency[1].median_ms);
 
     let checks = req.gate.as_ref().map(|g| checks(g, &outputs, detection.as_ref(), latency_ratio)).unwrap_or_default();
     let passed = checks.iter().all(|c| c.passed);
@@ -284,6 +290,8 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
         detection,
         latency,
         latency_ratio,
+        tract_vs_ort_ratio,
+        threads: req.threads,
         checks,
         passed,
     })
@@ -409,7 +417,10 @@ impl VerifyReport {
             let _ = writeln!(s, "  latency {:<16} median {:.2} ms (min {:.2}, {} runs)", l.name, l.median_ms, l.min_ms, l.runs);
         }
         if let Some(r) = self.latency_ratio {
-            let _ = writeln!(s, "  latency ratio candidate/reference on ORT: {r:.3}");
+            let _ = writeln!(s, "  latency ratio candidate/reference on ORT: {r:.3} ({} threads)", self.threads);
+        }
+        if let Some(r) = self.tract_vs_ort_ratio {
+            let _ = writeln!(s, "  latency ratio candidate tract/ORT: {r:.3}");
         }
         for c in &self.checks {
             let _ = writeln!(s, "  [{}] {} = {:.4e} ({} {:.4e})", if c.passed { "pass" } else { "FAIL" }, c.name, c.value, c.kind, c.threshold);

@@ -1,0 +1,210 @@
+//! `pdi-compile ship MODEL -o DIR`: the deployment artifacts of one trained model, measured.
+//!
+//! Builds, each in its own self-describing folder (model, report.json, manifest.yaml):
+//!   DIR/f32           the lossless detection compile, with the tract target (tract.yaml)
+//!   DIR/pruned-f32    pruned to 28% of the MACs in 16-channel steps, recovered by distillation,
+//!                     with the tract target
+//!   DIR/pruned-int8   that model in INT8 (QDQ, for ONNX Runtime on x86)
+//!   DIR/rknn          that model legalized for the RK3588 NPU, with the RKNN target
+//! then checks the ONNX variants against the original on the same frames (mAP against labels
+//! when the frames have them, agreement with the original's detections otherwise) and times
+//! the original and every variant on ONNX Runtime and tract in one interleaved loop.
+//! Writes DIR/ship.json; [`render`] is the one screen a person reads.
+//!
+//! Pruning runs once: INT8 and the NPU build start from the same recovered pruned model, so
+//! what the CPU runs and what the NPU runs differ only by their last pass.
+
+pub mod render;
+
+use crate::bench::{time_together, with_recover_minutes, Timing};
+use crate::compile::{compile, CompileReport, CompileRequest};
+use crate::fsutil::{ensure_dir, write_atomic};
+use crate::pipeline::{PassContext, Recipe};
+use crate::runtime::Engine;
+use crate::targets::Target;
+use crate::verify::{verify, VerifyRequest};
+use anyhow::{anyhow, Result};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+const DETECT_F32: &str = include_str!("../../passes/detect-f32.yaml");
+const DETECT_PRUNED_RKNN: &str = include_str!("../../passes/detect-pruned-rknn.yaml");
+const DETECT_INT8: &str = include_str!("../../passes/detect-int8.yaml");
+
+pub struct ShipRequest {
+    pub model: PathBuf,
+    pub out: PathBuf,
+    pub psf: Option<PathBuf>,
+    pub calib: Option<PathBuf>,
+    /// Frames to check on (YOLO labels beside them give mAP against labels).
+    pub data: Option<PathBuf>,
+    /// Simulated frames when no --data is given.
+    pub frames: usize,
+    pub recover_minutes: Option<f64>,
+    pub runs: usize,
+    pub threads: usize,
+}
+
+#[derive(Serialize)]
+pub struct Variant {
+    pub name: String,
+    pub folder: String,
+    pub file: String,
+    pub bytes: u64,
+    pub macs: u64,
+    pub params: u64,
+    pub ort_ms: Option<f64>,
+    pub tract_ms: Option<f64>,
+    /// mAP@0.5:0.95 against the frames' labels (on ORT), when they have labels.
+    pub map_labels: Option<f64>,
+    /// mAP@0.5:0.95 agreement with the original's detections, on ORT and on tract.
+    pub agreement: Option<f64>,
+    pub agreement_tract: Option<f64>,
+    pub compile_seconds: f64,
+}
+
+#[derive(Serialize)]
+pub struct ShipReport {
+    pub model: String,
+    pub out: String,
+    pub frames: String,
+    pub threads: usize,
+    pub runs: usize,
+    pub variants: Vec<Variant>,
+    /// The RKNN folder and what it holds (the toolkit builds model.rknn from it).
+    pub rknn: String,
+    pub warnings: Vec<String>,
+    pub seconds: f64,
+}
+
+/// The compiles: (name, source variant or the original, recipe text, target).
+fn stages(req: &ShipRequest) -> Result<Vec<(&'static str, Option<&'static str>, String, Target)>> {
+    // The NPU recipe without its legalization: pruned in 16-channel steps, recovered.
+    let mut pruned = Recipe::parse(&with_recover_minutes(DETECT_PRUNED_RKNN, req.recover_minutes)?)?;
+    pruned.passes.retain(|p| p.name != "rknn-legalize");
+    pruned.name = "pruned-f32".into();
+    let last = |text: &str, name: &str| -> Result<String> {
+        let r = Recipe::parse(text)?;
+        let pass = r.passes.last().cloned().ok_or_else(|| anyhow!("built-in recipe {} has no passes", r.name))?;
+        Recipe { name: name.into(), description: format!("the last pass of {}", r.name), passes: vec![pass] }.to_yaml()
+    };
+    Ok(vec![
+        ("f32", None, DETECT_F32.to_string(), Target::Tract),
+        ("pruned-f32", None, pruned.to_yaml()?, Target::Tract),
+        ("pruned-int8", Some("pruned-f32"), last(DETECT_INT8, "int8")?, Target::Onnx),
+        ("rknn", Some("pruned-f32"), last(DETECT_PRUNED_RKNN, "rknn")?, Target::Rknn),
+    ])
+}
+
+pub fn ship(req: &ShipRequest) -> Result<ShipReport> {
+    let started = Instant::now();
+    let recipes = req.out.join("recipes");
+    ensure_dir(&recipes)?;
+    let folder = |v: &str| req.out.join(v);
+    let mut compiled: Vec<(&str, CompileReport, f64)> = Vec::new();
+    let mut warnings = Vec::new();
+    for (name, from, recipe, target) in stages(req)? {
+        eprintln!("ship: compiling {name}");
+        let path = recipes.join(format!("{name}.yaml"));
+        write_atomic(&path, recipe.as_bytes())?;
+        let model = from.map_or_else(|| req.model.clone(), |f| folder(f).join("model.onnx"));
+        let t = Instant::now();
+        let report = compile(&CompileRequest {
+            model,
+            pipeline: path,
+            out_dir: folder(name),
+            external_data: false,
+            context: PassContext { psf: req.psf.clone(), calib: req.calib.clone(), keep_outputs: None, ..Default::default() },
+            target,
+            threads: req.threads,
+        })
+        .map_err(|e| anyhow!("compiling {name}: {e:#}"))?;
+        warnings.extend(report.warnings.iter().map(|w| format!("{name}: {w}")));
+        compiled.push((name, report, t.elapsed().as_secs_f64()));
+    }
+
+    let onnx_variants: Vec<&str> = ["f32", "pruned-f32", "pruned-int8"].to_vec();
+    let mut variants = vec![original(req)?];
+    for (name, report, seconds) in compiled.iter().filter(|(n, _, _)| onnx_variants.contains(n)) {
+        eprintln!("ship: checking {name} against the original");
+        let model = folder(name).join("model.onnx");
+        let r = verify(&VerifyRequest {
+            reference: req.model.clone(),
+            candidate: model.clone(),
+            data: req.data.clone(),
+            random: req.frames,
+            psf: req.psf.clone(),
+            gate: None,
+            latency_runs: 0,
+            tract: true,
+            seed: 0,
+            threads: req.threads,
+        })
+        .map_err(|e| anyhow!("checking {name}: {e:#}"))?;
+        let d = r.detection.as_ref();
+        if variants[0].map_labels.is_none() {
+            variants[0].map_labels = d.and_then(|d| d.reference_vs_labels.as_ref()).map(|m| m.map50_95);
+        }
+        variants.push(Variant {
+            name: name.to_string(),
+            folder: folder(name).display().to_string(),
+            file: if folder(name).join("model.nnef.tar").exists() { "model.nnef.tar (tract), model.onnx".into() } else { "model.onnx".into() },
+            bytes: std::fs::metadata(&model)?.len(),
+            macs: report.after.macs,
+            params: report.after.params,
+            ort_ms: None,
+            tract_ms: None,
+            map_labels: d.and_then(|d| d.candidate_vs_labels.as_ref()).map(|m| m.map50_95),
+            agreement: d.map(|d| d.agreement.map50_95),
+            agreement_tract: d.and_then(|d| d.agreement_tract.as_ref()).map(|m| m.map50_95),
+            compile_seconds: *seconds,
+        });
+    }
+
+    eprintln!("ship: timing the original and {} variants on ONNX Runtime and tract together, {} runs each", onnx_variants.len(), req.runs);
+    let timed: Vec<(String, Engine, PathBuf)> = onnx_variants.iter().flat_map(|v| [Engine::Ort, Engine::Tract].map(|e| (v.to_string(), e, folder(v).join("model.onnx")))).collect();
+    let ms = time_together(&Timing { original: &req.model, timed: &timed, data: req.data.as_deref(), psf: req.psf.as_deref(), runs: req.runs, threads: req.threads })?;
+    variants[0].ort_ms = Some(ms[0]);
+    for ((name, engine, _), ms) in timed.iter().zip(&ms[1..]) {
+        let v = variants.iter_mut().find(|v| &v.name == name).expect("every timed variant was checked");
+        match engine {
+            Engine::Ort => v.ort_ms = Some(*ms),
+            Engine::Tract => v.tract_ms = Some(*ms),
+        }
+    }
+    let rknn = folder("rknn");
+    let report = ShipReport {
+        model: req.model.display().to_string(),
+        out: req.out.display().to_string(),
+        frames: req.data.as_ref().map_or(format!("{} simulated frames", req.frames), |d| d.display().to_string()),
+        threads: req.threads,
+        runs: req.runs,
+        variants,
+        rknn: rknn.display().to_string(),
+        warnings: warnings.into_iter().chain(crate::warn::take()).collect(),
+        seconds: started.elapsed().as_secs_f64(),
+    };
+    write_atomic(&req.out.join("ship.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    Ok(report)
+}
+
+/// The original's row: its size and cost; latency and mAP are filled in by the checks.
+fn original(req: &ShipRequest) -> Result<Variant> {
+    let loaded = crate::onnx::io::load(&req.model)?;
+    let r = crate::inspect::inspect(&loaded.model)?;
+    Ok(Variant {
+        name: "original".into(),
+        folder: req.model.parent().unwrap_or(Path::new(".")).display().to_string(),
+        file: req.model.file_name().map_or(String::new(), |f| f.to_string_lossy().into_owned()),
+        bytes: std::fs::metadata(&req.model)?.len(),
+        macs: r.macs.total,
+        params: r.params.total,
+        ort_ms: None,
+        tract_ms: None,
+        map_labels: None,
+        agreement: Some(1.0),
+        agreement_tract: None,
+        compile_seconds: 0.0,
+    })
+}
