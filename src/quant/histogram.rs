@@ -40,17 +40,69 @@ impl Histogram {
         if values.len() <= MAX_BINNED_PER_CALL {
             return self.add_all(values);
         }
-        let (lo, hi, sum, finite) = match fast_stats(values) {
-            Some((lo, hi, sum)) => (lo, hi, sum, values.len() as u64),
-            None => values.iter().filter(|v| v.is_finite()).fold((f32::INFINITY, f32::NEG_INFINITY, 0.0f64, 0u64), |(lo, hi, s, n), &v| (lo.min(v), hi.max(v), s + v as f64, n + 1)),
+        let summary = fast_stats(values).map(|(lo, hi, sum)| (lo, hi, sum, values.len() as u64)).unwrap_or_else(|| slow_stats(values));
+        self.add_summarized(values, summary);
+    }
+
+    /// [`Histogram::add`] for a tensor of `planes` equal planes (NCHW, batch 1), also returning
+    /// each plane's mean, from the same pass over the values (calibration reads every
+    /// convolution input for both its range and, for bias correction, its channel means).
+    pub fn add_planes(&mut self, values: &[f32], planes: usize) -> Vec<f64> {
+        let planes = planes.max(1);
+        let plane = (values.len() / planes).max(1);
+        let mut means = vec![0.0; planes];
+        if values.len() <= MAX_BINNED_PER_CALL {
+            for (m, chunk) in means.iter_mut().zip(values.chunks(plane)) {
+                *m = chunk.iter().map(|&v| v as f64).sum::<f64>() / plane as f64;
+            }
+            self.add_all(values);
+            return means;
+        }
+        let per_plane: Vec<Option<(f32, f32, f64)>> = values.chunks(plane).map(fast_stats).collect();
+        for (m, (chunk, s)) in means.iter_mut().zip(values.chunks(plane).zip(&per_plane)) {
+            // A plane holding NaN or Inf gets a non-finite mean, as a plain sum would give it.
+            *m = s.map_or_else(|| chunk.iter().map(|&v| v as f64).sum::<f64>(), |(_, _, sum)| sum) / plane as f64;
+        }
+        let summary = if per_plane.iter().all(Option::is_some) {
+            per_plane.iter().flatten().fold((f32::INFINITY, f32::NEG_INFINITY, 0.0f64, values.len() as u64), |(lo, hi, sum, n), &(l, h, s)| (lo.min(l), hi.max(h), sum + s, n))
+        } else {
+            slow_stats(values)
         };
+        self.add_summarized(values, summary);
+        means
+    }
+
+    /// Exact (min, max, sum, finite count) of `values` go to the statistics; a strided sample
+    /// (plus the extremes) to the bins. The sample's peak is the extremes', so no pass over it
+    /// is needed before binning.
+    fn add_summarized(&mut self, values: &[f32], (lo, hi, sum, finite): (f32, f32, f64, u64)) {
+        let extremes = [lo, hi].into_iter().filter(|v| v.is_finite());
+        let peak = extremes.clone().fold(0.0f64, |m, v| m.max(v.abs() as f64));
+        if peak > self.radius {
+            self.grow_to(peak);
+        }
+        let width = self.bin_width();
         let stride = values.len().div_ceil(MAX_BINNED_PER_CALL);
-        let sample: Vec<f32> = values.iter().step_by(stride).copied().chain([lo, hi].into_iter().filter(|v| v.is_finite())).collect();
-        let (count, sum_before, non_finite) = (self.count, self.sum, self.non_finite);
-        self.add_all(&sample);
-        self.count = count + finite;
-        self.sum = sum_before + sum;
-        self.non_finite = non_finite + (values.len() as u64 - finite);
+        for v in values.iter().step_by(stride).copied().chain(extremes.clone()).filter(|v| v.is_finite()) {
+            self.bin(v as f64, width);
+        }
+        for v in extremes {
+            self.min = self.min.min(v as f64);
+            self.max = self.max.max(v as f64);
+        }
+        self.count += finite;
+        self.sum += sum;
+        self.non_finite += values.len() as u64 - finite;
+    }
+
+    fn bin(&mut self, v: f64, width: f64) {
+        if width > 0.0 {
+            let b = ((v + self.radius) / width) as usize;
+            self.counts[b.min(BINS - 1)] += 1;
+        } else {
+            // All zeros so far: they sit in the bin just above zero.
+            self.counts[BINS / 2] += 1;
+        }
     }
 
     fn add_all(&mut self, values: &[f32]) {
@@ -69,13 +121,7 @@ impl Histogram {
             self.max = self.max.max(v);
             self.count += 1;
             self.sum += v;
-            if width > 0.0 {
-                let b = ((v + self.radius) / width) as usize;
-                self.counts[b.min(BINS - 1)] += 1;
-            } else {
-                // All zeros so far: they sit in the bin just above zero.
-                self.counts[BINS / 2] += 1;
-            }
+            self.bin(v, width);
         }
     }
 
@@ -119,6 +165,12 @@ impl Histogram {
     }
 }
 
+/// (min, max, sum, count) over the finite values, one by one: the path for tensors holding
+/// NaN or Inf.
+fn slow_stats(values: &[f32]) -> (f32, f32, f64, u64) {
+    values.iter().filter(|v| v.is_finite()).fold((f32::INFINITY, f32::NEG_INFINITY, 0.0f64, 0u64), |(lo, hi, s, n), &v| (lo.min(v), hi.max(v), s + v as f64, n + 1))
+}
+
 /// Min, max and sum in lanes the compiler vectorizes; None when a value is not finite
 /// (then the caller takes the careful path).
 fn fast_stats(values: &[f32]) -> Option<(f32, f32, f64)> {
@@ -149,6 +201,29 @@ fn fast_stats(values: &[f32]) -> Option<(f32, f32, f64)> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// One pass for both: the same histogram as `add`, and every plane's mean.
+    #[test]
+    fn add_planes_matches_add_and_plane_means() {
+        for len in [4 * 1000, 4 * 70_000] {
+            let values: Vec<f32> = (0..len).map(|i| ((i * 7919) % 1013) as f32 / 97.0 - 3.0 + (i / (len / 4)) as f32).collect();
+            let (mut a, mut b) = (Histogram::default(), Histogram::default());
+            a.add(&values);
+            let means = b.add_planes(&values, 4);
+            assert_eq!(a.counts, b.counts, "len {len}");
+            assert_eq!((a.min, a.max, a.count, a.non_finite), (b.min, b.max, b.count, b.non_finite));
+            assert!((a.sum - b.sum).abs() <= 1e-6 * a.sum.abs().max(1.0), "{} vs {}", a.sum, b.sum);
+            for (k, m) in means.iter().enumerate() {
+                let plane = &values[k * len / 4..(k + 1) * len / 4];
+                let exact = plane.iter().map(|&v| v as f64).sum::<f64>() / plane.len() as f64;
+                assert!((m - exact).abs() <= 1e-5, "len {len} plane {k}: {m} vs {exact}");
+            }
+        }
+        let mut with_nan = vec![1.0f32; 4 * 70_000];
+        with_nan[5] = f32::NAN;
+        let means = Histogram::default().add_planes(&with_nan, 4);
+        assert!(means[0].is_nan() && means[1] == 1.0, "{means:?}");
+    }
 
     #[test]
     fn growing_keeps_counts_and_order() {
