@@ -33,3 +33,29 @@ fn tract_target_refuses_an_unbound_blur_map_input() {
     assert!(r.stderr.contains("one image input") && r.stderr.lines().count() == 1, "{}", r.stderr);
     assert!(!out.join("model.onnx").exists(), "no half-written folder");
 }
+
+/// An INT8 model is kept for tract only where tract ran it faster than the float model it was
+/// quantized from; either way tract.yaml says which with both timings, and the shipped model
+/// is the one it names.
+#[test]
+fn tract_target_weighs_int8_against_its_float_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let recipe = dir.path().join("int8.yaml");
+    std::fs::write(&recipe, std::fs::read_to_string(repo().join("passes/detect-int8.yaml")).unwrap().replace("calib_frames: 64", "calib_frames: 6, analysis_frames: 2, held_out_frames: 2")).unwrap();
+    let out = dir.path().join("int8");
+    let r = cli(&["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "--target", "tract", "--threads", "2", "-o", out.to_str().unwrap(), "--json"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    let check = &report["target_check"];
+    assert_eq!(check["threads"], 2, "{check}");
+    let why = check["int8"].as_str().unwrap_or_else(|| panic!("tract.yaml says what it did with INT8: {check}"));
+    let shipped = load(&out.join("model.onnx"));
+    let quantized = shipped.graph.as_ref().unwrap().node.iter().any(|n| n.op_type == "QuantizeLinear" || n.op_type == "QLinearConv");
+    if why.starts_with("kept") {
+        assert!(quantized, "{why}");
+    } else {
+        assert!(why.starts_with("replaced by its float model") && !quantized, "{why}");
+        assert!(r.stderr.contains("tract target: replaced"), "a warning says so: {}", r.stderr);
+    }
+    assert!(why.contains(" ms") && why.contains("float model"), "{why}");
+}

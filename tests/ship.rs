@@ -1,0 +1,28 @@
+//! `pdi-compile ship` (what `scripts/demo` runs) on the trained tiny model, with a recovery
+//! budget of seconds: every artifact folder is written, every variant measured, one screen.
+
+mod common;
+use common::*;
+
+#[test]
+fn ship_writes_every_artifact_and_one_screen() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("ship");
+    let r = cli(&["ship", "models/trained/pdinet_v5_tiny_trained.onnx", "--psf", "calib/single_lwir_blur.npy", "--frames", "4", "--recover-minutes", "0.1", "--runs", "2", "-o", out.to_str().unwrap()]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    for f in ["f32/model.onnx", "f32/tract.yaml", "pruned-f32/model.onnx", "pruned-f32/tract.yaml", "pruned-int8/model.onnx", "rknn/model.onnx", "rknn/rknn.yaml", "rknn/dataset.txt", "ship.json"] {
+        assert!(out.join(f).is_file(), "{f} written");
+    }
+    assert!(r.stdout.lines().count() <= 30, "one screen:\n{}", r.stdout);
+    assert!(r.stdout.contains("pruned-int8") && r.stdout.contains("rknn-convert"), "{}", r.stdout);
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("ship.json")).unwrap()).unwrap();
+    let v = report["variants"].as_array().unwrap();
+    let names: Vec<&str> = v.iter().map(|v| v["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["original", "f32", "pruned-f32", "pruned-int8"]);
+    let macs: Vec<u64> = v.iter().map(|v| v["macs"].as_u64().unwrap()).collect();
+    assert!(macs[1] < macs[0] && macs[2] * 10 <= macs[1] * 4, "pruned to about 28% of the compiled MACs: {macs:?}");
+    assert!(v[1]["agreement"].as_f64().unwrap() >= 0.99, "the lossless compile agrees: {}", v[1]);
+    for x in &v[1..] {
+        assert!(x["ort_ms"].as_f64().unwrap() > 0.0 && x["tract_ms"].as_f64().unwrap() > 0.0, "{x}");
+    }
+}
