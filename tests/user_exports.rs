@@ -92,3 +92,38 @@ fn detect_int8_runs_on_every_export() {
         assert_eq!(r.stderr.contains("replicated"), name == "3ch", "{name}: {}", r.stderr);
     }
 }
+
+/// A trained detector that is not PDI-Net (a YOLO on the raw frame: no reconstruction, no
+/// PALS-Bridge) gets the lossless passes and INT8; the physics passes say in one line why they
+/// did nothing, and a blur map given for it is refused in one line.
+#[test]
+fn a_detector_that_is_not_pdinet_gets_the_lossless_passes_and_int8() {
+    let model = repo().join("models/fixtures/exports/plain_v5_op17.onnx");
+    let info = inspect(&model);
+    assert_eq!(info["head"]["kind"], "yolov5-anchor", "{}", info["head"]);
+    assert!(info["bridge"]["gates"].as_array().unwrap().is_empty() && info["bridge"]["blur_maps"].as_array().unwrap().is_empty());
+
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("f32");
+    let r = cli(&["compile", model.to_str().unwrap(), "--pipeline", "passes/detect-f32.yaml", "-o", out.to_str().unwrap(), "--json"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    let details = |pass: &str| report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == pass).unwrap()["details"].clone();
+    assert!(details("bind-psf")["reason"].as_str().unwrap().contains("no PALS-Bridge"), "{}", details("bind-psf"));
+    assert!(details("fold-psf-gates")["note"].as_str().unwrap().contains("no PALS-Bridge"), "{}", details("fold-psf-gates"));
+    let v = cli(&["verify", "--reference", model.to_str().unwrap(), "--candidate", out.join("model.onnx").to_str().unwrap(), "--random", "3", "--runs", "0", "--json"]);
+    assert_eq!(v.code, 0, "{}", v.stderr);
+    let v: serde_json::Value = serde_json::from_str(&v.stdout).unwrap();
+    assert!(v["outputs"][0]["ort"]["rel_l2"].as_f64().unwrap() <= 1e-5, "{}", v["outputs"][0]);
+
+    let with_psf = cli(&["compile", model.to_str().unwrap(), "--pipeline", "passes/detect-f32.yaml", "--psf", "calib/single_lwir_blur.npy", "-o", dir.path().join("psf").to_str().unwrap()]);
+    assert_eq!(with_psf.code, 2, "{}", with_psf.stderr);
+    let errors: Vec<&str> = with_psf.stderr.lines().filter(|l| l.starts_with("error:")).collect();
+    assert!(errors.len() == 1 && errors[0].contains("no PALS-Bridge") && errors[0].contains("without --psf"), "{}", with_psf.stderr);
+
+    let recipe = dir.path().join("int8.yaml");
+    std::fs::write(&recipe, std::fs::read_to_string(repo().join("passes/detect-int8.yaml")).unwrap().replace("calib_frames: 64", "calib_frames: 6, analysis_frames: 2, held_out_frames: 2")).unwrap();
+    let r = cli(&["compile", model.to_str().unwrap(), "--pipeline", recipe.to_str().unwrap(), "-o", dir.path().join("int8").to_str().unwrap()]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    assert!(inspect(&dir.path().join("int8/model.onnx"))["ops"]["QuantizeLinear"].as_u64().unwrap_or(0) > 10);
+}

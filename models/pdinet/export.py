@@ -11,6 +11,8 @@ Exports as other users make them (issue 19's fixtures), each on top of the varia
   --detection-only   only the detection output (the reconstruction decoder never exported)
   --channels 3       thermal frames stored as RGB (the first convolution takes 3 channels)
   --constant-weights every initializer moved into a Constant node (Paddle / TensorFlow style)
+  --plain            not PDI-Net at all: a YOLO detector on the raw frame (no reconstruction,
+                     no PALS-Bridge)
 """
 import argparse
 import itertools
@@ -21,7 +23,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from pdinet.model import PDINet  # noqa: E402
+from pdinet.model import PDINet, PlainDetector  # noqa: E402
 from pdinet.frames import blur_map_radial, thermal_frames  # noqa: E402
 
 CLASS_NAMES = ["People", "Car", "Bus", "Motorcycle", "Lamp", "Truck"]
@@ -71,6 +73,23 @@ def export_variant(out, head, psf_mode, opset, fold, width, size, seed, channels
     if constant_weights:
         initializers_to_constants(path)
     add_metadata(path, head, psf_mode, width, size)
+    return path
+
+
+def export_plain(out, head, opset, width, size, seed):
+    """A detector that is not PDI-Net: one image input, one detection output."""
+    w, h = size
+    torch.manual_seed(seed)
+    model = PlainDetector(head=head, width=width)
+    frames = [torch.from_numpy(f) for f in thermal_frames(6, 4, h, w, seed)]
+    model.train()
+    with torch.no_grad():
+        for f in frames:
+            model(f)
+    model.eval()
+    path = os.path.join(out, f"plain_{head}_op{opset}.onnx")
+    torch.onnx.export(model, (frames[0][:1],), path, input_names=["image"], output_names=["detections"],
+                      opset_version=opset, do_constant_folding=True, dynamo=False)
     return path
 
 
@@ -126,9 +145,15 @@ def main():
     ap.add_argument("--channels", type=int, default=1)
     ap.add_argument("--detection-only", action="store_true")
     ap.add_argument("--constant-weights", action="store_true")
+    ap.add_argument("--plain", action="store_true")
     a = ap.parse_args()
     size = tuple(int(v) for v in a.size.split("x"))
     os.makedirs(a.out, exist_ok=True)
+    if a.plain:
+        for head in a.head or ["v5"]:
+            p = export_plain(a.out, head, (a.opset or [17])[0], a.width, size, a.seed)
+            print(f"{p}  {os.path.getsize(p) / 1e6:.2f} MB")
+        return
     grid = itertools.product(a.head or ["v5", "v8"], a.psf or ["input", "const"],
                              a.opset or [13, 17], a.fold or ["on", "off"])
     for head, psf, opset, fold in grid:

@@ -399,3 +399,21 @@ class PDINet(nn.Module):
         recon = self.unet.decode(image, e1, e2, e3)
         det = self.detect(self.neck(*self.backbone(self.bridge(e3, psf_blur))))
         return recon, det
+
+
+class PlainDetector(nn.Module):
+    """Not PDI-Net: a YOLO detector on the raw frame (strided stem, no reconstruction branch,
+    no PSF gating), for checking what the toolchain does with a model it was not built for."""
+
+    def __init__(self, head="v5", width=1.0, nc=NUM_CLASSES, in_ch=1):
+        super().__init__()
+        c_stem = ch(64, width)
+        widths = (ch(64, width), ch(128, width), ch(256, width), ch(512, width))
+        self.stem = nn.Sequential(Conv(in_ch, c_stem // 2, 3, 2), Conv(c_stem // 2, c_stem, 3, 2))
+        block = C3 if head == "v5" else C2f
+        self.backbone = Backbone(c_stem, widths, block, (1, 1, 1))
+        self.neck = NeckV5(widths, 1) if head == "v5" else NeckV8(widths, 1)
+        self.detect = DetectV5(widths[1:], nc) if head == "v5" else DetectV8(widths[1:], nc)
+
+    def forward(self, image):
+        return self.detect(self.neck(*self.backbone(self.stem(image))))

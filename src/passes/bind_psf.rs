@@ -43,9 +43,9 @@ impl Pass for BindPsf {
         let psf_file = cx.psf.as_ref().or(self.options.psf.as_ref());
         if maps.is_empty() {
             if psf_file.is_some() {
-                bail!("--psf was given but the model has no PALS-Bridge blur map to bind");
+                bail!("--psf was given but the model has no PALS-Bridge blur map to bind (not a PDI-Net export, or its map is folded already); compile it without --psf");
             }
-            return Ok(serde_json::json!({ "bound": false, "reason": "no blur map in the model" }));
+            return Ok(serde_json::json!({ "bound": false, "reason": "no PALS-Bridge blur map in the model (not a PDI-Net export, or its map is folded already)" }));
         }
         let Some(file) = psf_file else {
             if let Some(m) = maps.iter().find(|m| m.source == "input") {

@@ -56,7 +56,8 @@ impl Pass for FoldPsfGates {
         let g = super::graph_mut(model)?;
         let fusions = find_fusions(g)?;
         if fusions.is_empty() {
-            return Ok(serde_json::json!({ "gates": [], "note": "no constant gate products found (run bind-psf and fold-constants first)" }));
+            let note = if has_bridge(g)? { "no constant gate products found (run bind-psf and fold-constants first)" } else { "no PALS-Bridge in the model: no PSF gates to fold (not a PDI-Net export)" };
+            return Ok(serde_json::json!({ "gates": [], "note": note }));
         }
         let mut dead = HashSet::new();
         let mut gates_report = Vec::new();
@@ -247,4 +248,13 @@ fn fold_uniform(g: &mut GraphProto, p: &Product, c: f32, dead: &mut HashSet<usiz
         *i = name.clone();
     }
     Ok(format!("uniform {c}: scalar multiply (branch ends in an activation)"))
+}
+
+/// Whether the model has PSF gates at all (folded or not): a plain detector has none.
+fn has_bridge(g: &GraphProto) -> Result<bool> {
+    let graph = Graph::build(g)?;
+    let inf = infer(&graph);
+    let image = crate::analysis::partition::image_input(&graph, &inf);
+    let b = crate::analysis::bridge::find(&graph, &inf, image.as_deref());
+    Ok(!b.gates.is_empty() || !b.blur_maps.is_empty())
 }
