@@ -192,7 +192,7 @@ fn qlinear_form_runs_alike_on_tract_and_ort() {
 fn int8_beats_ort_quantize_static_on_every_channel_group() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("compare");
-    let r = std::process::Command::new(repo().join("scripts/compare-int8")).args([V5, out.to_str().unwrap()]).current_dir(repo()).output().unwrap();
+    let r = std::process::Command::new(repo().join("scripts/compare-int8")).args([V5, out.to_str().unwrap()]).env("PDI_BIN", env!("CARGO_BIN_EXE_pdi-compile")).current_dir(repo()).output().unwrap();
     assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
     let rows: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("comparison.json")).unwrap()).unwrap();
     println!("{}", std::fs::read_to_string(out.join("comparison.md")).unwrap());
