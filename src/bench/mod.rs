@@ -30,11 +30,11 @@ use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-const DETECT_F32: &str = include_str!("../../passes/detect-f32.yaml");
+pub(crate) const DETECT_F32: &str = include_str!("../../passes/detect-f32.yaml");
 const DETECT_PRUNED_F32: &str = include_str!("../../passes/detect-pruned-f32.yaml");
 const DETECT_PRUNED_F32_NORECOVER: &str = include_str!("../../passes/detect-pruned-f32-norecover.yaml");
 const DETECT_FP16: &str = include_str!("../../passes/detect-fp16.yaml");
-const DETECT_INT8: &str = include_str!("../../passes/detect-int8.yaml");
+pub(crate) const DETECT_INT8: &str = include_str!("../../passes/detect-int8.yaml");
 
 pub struct BenchRequest {
     pub model: PathBuf,
@@ -85,6 +85,14 @@ pub struct BenchReport {
 }
 
 /// `text` with every `recover` pass's time budget set to `minutes` (unchanged when None).
+/// A recipe of `text`'s last pass alone, named `name`: applied to an earlier variant, it
+/// makes e.g. INT8 from the f32 compile without running the lossless passes again.
+pub(crate) fn last_pass_of(text: &str, name: &str) -> Result<String> {
+    let r = Recipe::parse(text)?;
+    let last = r.passes.last().cloned().ok_or_else(|| anyhow!("built-in recipe {} has no passes", r.name))?;
+    Recipe { name: name.into(), description: format!("the last pass of {}", r.name), passes: vec![last] }.to_yaml()
+}
+
 pub(crate) fn with_recover_minutes(text: &str, minutes: Option<f64>) -> Result<String> {
     let Some(minutes) = minutes else { return Ok(text.to_string()) };
     let mut r = Recipe::parse(text)?;
@@ -110,11 +118,6 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
         let p = recipes.join(format!("{name}.yaml"));
         write_atomic(&p, text.as_bytes())?;
         Ok(p)
-    };
-    let last_pass_of = |text: &str, name: &str| -> Result<String> {
-        let r = Recipe::parse(text)?;
-        let last = r.passes.last().cloned().ok_or_else(|| anyhow!("built-in recipe has no passes"))?;
-        Recipe { name: name.into(), description: format!("the last pass of {}", r.name), passes: vec![last] }.to_yaml()
     };
     let fp16 = write_recipe("fp16", &last_pass_of(DETECT_FP16, "fp16")?)?;
     let int8 = write_recipe("int8", &last_pass_of(DETECT_INT8, "int8")?)?;

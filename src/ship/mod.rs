@@ -16,7 +16,7 @@
 
 pub mod render;
 
-use crate::bench::{time_together, with_recover_minutes, Timing};
+use crate::bench::{last_pass_of, time_together, with_recover_minutes, Timing, DETECT_F32, DETECT_INT8};
 use crate::compile::{compile, CompileReport, CompileRequest};
 use crate::fsutil::{ensure_dir, write_atomic};
 use crate::pipeline::{PassContext, Recipe};
@@ -28,9 +28,7 @@ use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-const DETECT_F32: &str = include_str!("../../passes/detect-f32.yaml");
 const DETECT_PRUNED_RKNN: &str = include_str!("../../passes/detect-pruned-rknn.yaml");
-const DETECT_INT8: &str = include_str!("../../passes/detect-int8.yaml");
 
 pub struct ShipRequest {
     pub model: PathBuf,
@@ -84,16 +82,11 @@ fn stages(req: &ShipRequest) -> Result<Vec<(&'static str, Option<&'static str>, 
     let mut pruned = Recipe::parse(&with_recover_minutes(DETECT_PRUNED_RKNN, req.recover_minutes)?)?;
     pruned.passes.retain(|p| p.name != "rknn-legalize");
     pruned.name = "pruned-f32".into();
-    let last = |text: &str, name: &str| -> Result<String> {
-        let r = Recipe::parse(text)?;
-        let pass = r.passes.last().cloned().ok_or_else(|| anyhow!("built-in recipe {} has no passes", r.name))?;
-        Recipe { name: name.into(), description: format!("the last pass of {}", r.name), passes: vec![pass] }.to_yaml()
-    };
     Ok(vec![
         ("f32", None, DETECT_F32.to_string(), Target::Tract),
         ("pruned-f32", None, pruned.to_yaml()?, Target::Tract),
-        ("pruned-int8", Some("pruned-f32"), last(DETECT_INT8, "int8")?, Target::Onnx),
-        ("rknn", Some("pruned-f32"), last(DETECT_PRUNED_RKNN, "rknn")?, Target::Rknn),
+        ("pruned-int8", Some("pruned-f32"), last_pass_of(DETECT_INT8, "int8")?, Target::Onnx),
+        ("rknn", Some("pruned-f32"), last_pass_of(DETECT_PRUNED_RKNN, "rknn")?, Target::Rknn),
     ])
 }
 
