@@ -60,6 +60,42 @@ pub fn torch_python() -> Result<PathBuf> {
     }
 }
 
+/// Runs a torch worker script (`source`, written beside its `companions` into `dir`) with
+/// `args`: JSON events on its stdout go to `on_event`; returns its `done` event, or the last
+/// line of its stderr as the error.
+pub fn run_worker(dir: &Path, script: (&str, &str), companions: &[(&str, &str)], args: &[&std::ffi::OsStr], mut on_event: impl FnMut(&serde_json::Value)) -> Result<serde_json::Value> {
+    use std::io::{BufRead, BufReader};
+    use std::process::Stdio;
+    for (name, source) in companions.iter().chain(std::iter::once(&script)) {
+        std::fs::write(dir.join(name), source)?;
+    }
+    let python = torch_python()?;
+    let mut child = Command::new(&python)
+        .arg(dir.join(script.0))
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .with_context(|| format!("cannot run {}", python.display()))?;
+    let stderr = child.stderr.take().expect("piped");
+    let errors = std::thread::spawn(move || std::io::read_to_string(stderr).unwrap_or_default());
+    let mut done = None;
+    for line in BufReader::new(child.stdout.take().expect("piped")).lines() {
+        let Ok(event) = serde_json::from_str::<serde_json::Value>(&line?) else { continue };
+        if event["event"] == "done" {
+            done = Some(event);
+        } else {
+            on_event(&event);
+        }
+    }
+    let status = child.wait()?;
+    let err = errors.join().unwrap_or_default();
+    match done.filter(|_| status.success()) {
+        Some(d) => Ok(d),
+        None => bail!("{} failed ({status}): {}", script.0, err.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message")),
+    }
+}
+
 fn cache() -> Result<PathBuf> {
     std::env::var_os("PDI_CACHE")
         .map(PathBuf::from)

@@ -1,7 +1,8 @@
 //! INT8 (QDQ) and FP16 compiles of the fixtures: ONNX Runtime fuses the INT8 graph into
 //! integer kernels, outputs stay close to float per channel group, degenerate calibration
 //! sets (near-black frames, outliers) give finite scales and an all-zero one is refused,
-//! mixed precision keeps layers float until its budget holds (or says it could not).
+//! mixed precision keeps layers float until its budget holds (or says it could not), learned
+//! rounding moves weights by at most one step and lowers the layers' error.
 
 mod common;
 use common::*;
@@ -201,4 +202,43 @@ fn int8_beats_ort_quantize_static_on_every_channel_group() {
         let theirs = rows["ort_int8"]["groups"][group]["rel_l2"].as_f64().unwrap();
         assert!(ours < theirs, "{group}: pdi-compile {ours} vs ORT quantize_static {theirs}");
     }
+}
+
+/// Learned rounding on the trained tiny model: every convolution's weights move by at most
+/// one step from rounding to nearest (the scales stay), some do move, and the layers'
+/// reconstruction error falls on average, measured by the worker on the quantized model's inputs.
+#[test]
+fn learned_rounding_moves_weights_one_step_and_lowers_layer_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let fast = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 8");
+    let nearest = variant(dir.path(), &fast, "error_budget: 0.1", "error_budget: 10.0");
+    let learned = variant(dir.path(), &nearest, "error_budget: 10.0", "error_budget: 10.0, rounding: learned, rounding_iterations: 100, rounding_frames: 8");
+    let tiny = "models/trained/pdinet_v5_tiny_trained.onnx";
+    let (a, b) = (dir.path().join("nearest"), dir.path().join("learned"));
+    let qa = compile(tiny, &nearest, &a, &[]);
+    let qb = compile(tiny, &learned, &b, &[]);
+    assert_eq!(qa["rounding"]["method"], "nearest");
+    let r = &qb["rounding"];
+    assert_eq!(r["method"], "learned", "{r}");
+    let layers = r["layers"].as_u64().unwrap();
+    assert!(layers > 10, "every quantized convolution learned: {layers}");
+    let ratio = r["mean_error_ratio_learned_to_nearest"].as_f64().unwrap();
+    let improved = r["layers_improved"].as_u64().unwrap();
+    assert!(ratio < 1.0 && improved > layers / 2, "learned rounding lowers the layers' output error: mean ratio {ratio}, {improved} of {layers} layers better");
+    let int8 = |p: &Path| -> std::collections::BTreeMap<String, Vec<f64>> {
+        let g = load(&p.join("model.onnx")).graph.unwrap();
+        g.initializer.iter().filter(|t| t.name.ends_with("_int8")).map(|t| (t.name.clone(), pdi_compile::onnx::tensor_proto::to_tensor(t).unwrap().data.to_f64())).collect()
+    };
+    let (wa, wb) = (int8(&a), int8(&b));
+    assert_eq!(wa.keys().collect::<Vec<_>>(), wb.keys().collect::<Vec<_>>(), "the same weights are quantized");
+    let (mut moved, mut total) = (0, 0);
+    for (name, x) in &wa {
+        for (p, q) in x.iter().zip(&wb[name]) {
+            assert!((p - q).abs() <= 1.0, "{name}: learned {q} is more than one step from nearest {p}");
+            moved += (p != q) as usize;
+            total += 1;
+        }
+    }
+    assert!(moved > 0 && moved < total / 2, "{moved} of {total} weights rounded the other way");
+    scales_are_finite(&b.join("model.onnx"));
 }

@@ -6,7 +6,8 @@
 //! the decode after them stay float (boxes and scores never share a scale); every scale is
 //! finite and positive, whatever the frames (a constant or all-zero activation gets a fixed
 //! scale and a warning).
-//! Reports: the range method and frames, warnings, every quantized layer's error against
+//! Reports: the range method and frames, warnings, the rounding (learned: each layer's output
+//! error with nearest and learned rounding), every quantized layer's error against
 //! float alone and accumulated (worst first), the bias shifts corrected, the layers mixed
 //! precision kept float and why, and the outputs' error per channel group on held-out frames
 //! (and under each of `calib_conditions`, the stress conditions mixed into calibration).
@@ -56,6 +57,21 @@ pub struct Options {
     /// calibration frame i is clean when i % (n + 1) == 0, else under condition i % (n + 1) - 1,
     /// so ranges cover what the deployment will meet. The held-out check runs under each.
     pub calib_conditions: Vec<String>,
+    /// `nearest`, or `learned`: each convolution weight's rounding direction chosen to
+    /// reproduce its layer's float output (AdaRound, in the torch worker; replaces bias
+    /// correction on those layers, whose mean shift it already minimizes).
+    pub rounding: Rounding,
+    /// Learned rounding: optimizer steps per convolution.
+    pub rounding_iterations: usize,
+    /// Learned rounding: calibration frames it reconstructs (the last of them).
+    pub rounding_frames: usize,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Rounding {
+    Nearest,
+    Learned,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -82,6 +98,9 @@ impl Default for Options {
             seed: 0,
             format: Format::Qdq,
             calib_conditions: Vec::new(),
+            rounding: Rounding::Nearest,
+            rounding_iterations: 400,
+            rounding_frames: 16,
         }
     }
 }
@@ -93,6 +112,10 @@ pub struct Quantize {
 /// A layer mixed precision tries stays float only if the worst output error drops below this
 /// fraction of what it was.
 const MIN_IMPROVEMENT: f64 = 0.97;
+
+/// Windows per learned-rounding step (48x48 outputs each, see `rounding::CROP`): 18k output
+/// positions to average over, few enough that a step on 2 cores takes milliseconds.
+const ROUNDING_BATCH: usize = 8;
 
 /// Layers listed in the report's attribution table (worst first); the rest are counted.
 const REPORTED_LAYERS: usize = 40;
@@ -147,12 +170,27 @@ impl Pass for Quantize {
         let conv_inputs = if o.bias_correction { conv_inputs } else { HashMap::new() };
         let stats = statistics(&float, &collected, &conv_inputs, &feeds, threads)?;
         let (params, mut warnings) = activation_params(&graph, &values, &stats, o);
-        let shifts = if o.bias_correction { bias_shifts(&graph, &base, &stats.channel_means, o.weight_bits)? } else { HashMap::new() };
+        let mut shifts = if o.bias_correction { bias_shifts(&graph, &base, &stats.channel_means, o.weight_bits)? } else { HashMap::new() };
         clock.lap("ranges");
+        let learned = match o.rounding {
+            Rounding::Nearest => None,
+            Rounding::Learned => {
+                // The last calibration frames: the first ones judge mixed precision, which
+                // must not see the frames the rounding was fitted to.
+                let frames: Vec<crate::tensor::Tensor> = feeds.iter().rev().take(o.rounding_frames.max(1)).map(|f| f[0].1.clone()).collect();
+                let opts = crate::quant::rounding::Options { activations: o.activations, weight_bits: o.weight_bits, iterations: o.rounding_iterations, batch: ROUNDING_BATCH, seed: o.seed };
+                let l = crate::quant::rounding::learn(&float, &graph, &base, &params, &frames, &opts)?;
+                shifts.retain(|i, _| !l.weights.contains_key(i));
+                Some(l)
+            }
+        };
+        let no_weights = HashMap::new();
+        let weights = learned.as_ref().map_or(&no_weights, |l| &l.weights);
+        clock.lap("rounding");
         let collection = collection_cost(&float, &feeds, &stats, threads)?;
         clock.lap("plain_inference_for_comparison");
 
-        let emit_with = |p: &Plan| emit(&float, p, &EmitOptions { params: &params, activations: o.activations, weight_bits: o.weight_bits, bias_shift: &shifts });
+        let emit_with = |p: &Plan| emit(&float, p, &EmitOptions { params: &params, activations: o.activations, weight_bits: o.weight_bits, bias_shift: &shifts, weights });
         let (quantized, emitted) = emit_with(&base)?;
         clock.lap("emit");
         let alone = attribution::alone(&float, &base, &params, o.activations, o.weight_bits, &analysis, threads)?;
@@ -206,6 +244,7 @@ impl Pass for Quantize {
             "held_out_frames": held_out.len(),
             "held_out_overlaps_calibration": overlap,
             "bias_corrected_convolutions": shifts.len(),
+            "rounding": learned.map_or(serde_json::json!({"method": "nearest"}), |l| l.report),
             "emitted": emitted,
             "warnings": warnings,
             "ort_optimized_ops": ort_ops,

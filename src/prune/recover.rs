@@ -11,9 +11,9 @@ use crate::tensor::Tensor;
 use anyhow::{anyhow, bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::collections::HashMap;
-use std::io::{BufRead, BufReader};
+use std::ffi::OsStr;
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Command;
 
 const WORKER: &str = include_str!("recover_worker.py");
 
@@ -104,41 +104,21 @@ pub fn distill(student: &mut ModelProto, teacher: &ModelProto, kept: &HashMap<St
         "device": if o.device.is_empty() { serde_json::Value::Null } else { o.device.clone().into() },
     });
     std::fs::write(dir.join("config.json"), serde_json::to_vec(&config)?)?;
-    std::fs::write(dir.join("recover_worker.py"), WORKER)?;
-    let python = crate::pyenv::torch_python()?;
-    let mut child = Command::new(&python)
-        .arg(dir.join("recover_worker.py"))
-        .arg("train")
-        .arg(dir.join("config.json"))
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .with_context(|| format!("cannot run {}", python.display()))?;
-    let stderr = child.stderr.take().expect("piped");
-    let errors = std::thread::spawn(move || std::io::read_to_string(stderr).unwrap_or_default());
     let pb = ProgressBar::new(1);
     pb.set_style(ProgressStyle::with_template("recover [{bar:30}] {pos}/{len} steps, {msg} ({elapsed})").expect("valid template").progress_chars("=> "));
-    let mut outcome = None;
-    for line in BufReader::new(child.stdout.take().expect("piped")).lines() {
-        let Ok(event) = serde_json::from_str::<serde_json::Value>(&line?) else { continue };
-        match event["event"].as_str() {
-            Some("start") => pb.set_message(format!("on {}", event["device"].as_str().unwrap_or("?"))),
-            Some("step") | Some("epoch") => {
-                pb.set_length(event["steps"].as_u64().unwrap_or(1));
-                pb.set_position(event["step"].as_u64().unwrap_or(0));
-                pb.set_message(format!("loss {:.4}", event["loss"].as_f64().unwrap_or(f64::NAN)));
-            }
-            Some("done") => outcome = Some(serde_json::from_value::<Outcome>(event)?),
-            _ => {}
+    let config_path = dir.join("config.json");
+    let args = [OsStr::new("train"), config_path.as_os_str()];
+    let done = crate::pyenv::run_worker(dir, ("recover_worker.py", WORKER), &[], &args, |event| match event["event"].as_str() {
+        Some("start") => pb.set_message(format!("on {}", event["device"].as_str().unwrap_or("?"))),
+        Some("step") | Some("epoch") => {
+            pb.set_length(event["steps"].as_u64().unwrap_or(1));
+            pb.set_position(event["step"].as_u64().unwrap_or(0));
+            pb.set_message(format!("loss {:.4}", event["loss"].as_f64().unwrap_or(f64::NAN)));
         }
-    }
+        _ => {}
+    });
     pb.finish_and_clear();
-    let status = child.wait()?;
-    let err = errors.join().unwrap_or_default();
-    let Some(outcome) = outcome.filter(|_| status.success()) else {
-        let last = err.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message");
-        bail!("the recovery worker failed ({status}): {last}");
-    };
+    let outcome: Outcome = serde_json::from_value(done.context("the recovery worker failed")?)?;
     let trained = crate::onnx::load(&dir.join("trained.onnx"))?.model;
     take_weights(student, &trained)?;
     Ok(outcome)
@@ -181,7 +161,8 @@ fn take_weights(model: &mut ModelProto, trained: &ModelProto) -> Result<()> {
     Ok(())
 }
 
-fn write_frames(frames: &[Tensor], path: &Path) -> Result<()> {
+/// Frames (each [1, C, H, W]) as one [N, C, H, W] .npy file, for the torch workers.
+pub(crate) fn write_frames(frames: &[Tensor], path: &Path) -> Result<()> {
     let first = frames.first().ok_or_else(|| anyhow!("recover needs frames"))?;
     let mut shape = first.shape.clone();
     shape[0] = frames.len();

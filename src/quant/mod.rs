@@ -1,5 +1,5 @@
 //! Post-training INT8 quantization: ranges from calibration frames, QDQ emission, error
-//! attribution per layer, bias correction and mixed precision. The `quantize` pass drives it.
+//! attribution per layer, bias correction, learned rounding and mixed precision. The `quantize` pass drives it.
 
 pub mod attribution;
 pub mod collect;
@@ -9,3 +9,4 @@ pub mod plan;
 pub mod qdq;
 pub mod qlinear;
 pub mod range;
+pub mod rounding;

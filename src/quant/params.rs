@@ -69,6 +69,7 @@ impl QParams {
 /// Symmetric per-output-channel int8 weights: `bits` 8 gives [-127, 127]; 7 gives [-63, 63]
 /// (ONNX Runtime's `reduce_range`, which avoids the int16 saturation of u8s8 products on
 /// AVX2 without VNNI).
+#[derive(Clone, Debug)]
 pub struct QuantizedWeights {
     pub values: Vec<i8>,
     pub scales: Vec<f64>,

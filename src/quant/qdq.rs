@@ -3,7 +3,7 @@
 //! DQ -> op -> Q into its integer kernels (QLinearConv, QLinearAdd, ...); any other runtime
 //! reads the same file as float arithmetic on quantized values.
 
-use super::params::{quantize_bias, quantize_weights, ActivationType, QParams};
+use super::params::{quantize_bias, quantize_weights, ActivationType, QParams, QuantizedWeights};
 use super::plan::Plan;
 use crate::ir::Graph;
 use crate::onnx::edit::{fresh_name, set_initializer, sort_topologically};
@@ -21,6 +21,8 @@ pub struct EmitOptions<'a> {
     pub weight_bits: u32,
     /// Per-channel bias shifts measured by bias correction, by node index (subtracted).
     pub bias_shift: &'a HashMap<usize, Vec<f64>>,
+    /// Learned integer weights by node index (learned rounding); others round to nearest.
+    pub weights: &'a HashMap<usize, QuantizedWeights>,
 }
 
 #[derive(Default, Debug, serde::Serialize)]
@@ -92,7 +94,10 @@ pub fn emit(model: &ModelProto, plan: &Plan, o: &EmitOptions) -> Result<(ModelPr
         }
         let w = to_tensor(graph.initializers[n.input[1].as_str()])?;
         let out_channels = w.shape[0];
-        let qw = quantize_weights(w.as_f32().expect("planned"), out_channels, o.weight_bits);
+        let qw = match o.weights.get(&i) {
+            Some(learned) => learned.clone(),
+            None => quantize_weights(w.as_f32().expect("planned"), out_channels, o.weight_bits),
+        };
         let w_name = fresh_name(&g, &format!("{}_int8", n.input[1]));
         set_initializer(&mut g, from_tensor(&w_name, &Tensor::new(w.shape.clone(), TensorData::I8(qw.values))));
         let w_dq = dequantize_per_channel(&mut g, &w_name, &qw.scales, TensorData::I8(vec![0; out_channels]), 0);
