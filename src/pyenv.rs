@@ -60,9 +60,9 @@ pub fn torch_python() -> Result<PathBuf> {
     }
 }
 
-/// Runs a torch worker script (`source`, written beside its `companions` into `dir`) with
-/// `args`: JSON events on its stdout go to `on_event`; returns its `done` event, or the last
-/// line of its stderr as the error.
+/// Runs the torch worker `script` (file name, source; written with its `companions` into
+/// `dir`) with `args`: the JSON events on its stdout go to `on_event`; returns its `done`
+/// event, or fails with the last line of its stderr.
 pub fn run_worker(dir: &Path, script: (&str, &str), companions: &[(&str, &str)], args: &[&std::ffi::OsStr], mut on_event: impl FnMut(&serde_json::Value)) -> Result<serde_json::Value> {
     use std::io::{BufRead, BufReader};
     use std::process::Stdio;

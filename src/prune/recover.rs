@@ -118,7 +118,7 @@ pub fn distill(student: &mut ModelProto, teacher: &ModelProto, kept: &HashMap<St
         _ => {}
     });
     pb.finish_and_clear();
-    let outcome: Outcome = serde_json::from_value(done.context("the recovery worker failed")?)?;
+    let outcome: Outcome = serde_json::from_value(done?)?;
     let trained = crate::onnx::load(&dir.join("trained.onnx"))?.model;
     take_weights(student, &trained)?;
     Ok(outcome)
