@@ -84,7 +84,6 @@ pub struct BenchReport {
     pub seconds: f64,
 }
 
-/// `text` with every `recover` pass's time budget set to `minutes` (unchanged when None).
 /// A recipe of `text`'s last pass alone, named `name`: applied to an earlier variant, it
 /// makes e.g. INT8 from the f32 compile without running the lossless passes again.
 pub(crate) fn last_pass_of(text: &str, name: &str) -> Result<String> {
@@ -93,6 +92,7 @@ pub(crate) fn last_pass_of(text: &str, name: &str) -> Result<String> {
     Recipe { name: name.into(), description: format!("the last pass of {}", r.name), passes: vec![last] }.to_yaml()
 }
 
+/// `text` with every `recover` pass's time budget set to `minutes` (unchanged when None).
 pub(crate) fn with_recover_minutes(text: &str, minutes: Option<f64>) -> Result<String> {
     let Some(minutes) = minutes else { return Ok(text.to_string()) };
     let mut r = Recipe::parse(text)?;

@@ -295,11 +295,17 @@ def augment(x, gen):
     return (x * gain + offset + noise).clamp(0, 1)
 
 
-def train(cfg):
+def setup(cfg):
+    """The device (CUDA when torch sees it, unless the config names one), every core, and the
+    config's seed for torch and for the returned generator (which draws on the CPU)."""
     dev = torch.device(cfg.get("device") or ("cuda" if torch.cuda.is_available() else "cpu"))
     torch.set_num_threads(max(1, os.cpu_count() or 1))
     torch.manual_seed(cfg["seed"])
-    gen = torch.Generator().manual_seed(cfg["seed"])
+    return dev, torch.Generator().manual_seed(cfg["seed"])
+
+
+def train(cfg):
+    dev, gen = setup(cfg)
     student_model = onnx.load(cfg["student"])
     student = Graph(student_model).to_device(dev)
     heads, features = cfg["heads"], cfg.get("features", [])

@@ -123,10 +123,7 @@ def learn_layer(node, w, b, scales, qmax, x_q, x_fp, cfg, gen, post=None):
 
 
 def run(cfg):
-    dev = torch.device(cfg.get("device") or ("cuda" if torch.cuda.is_available() else "cpu"))
-    torch.set_num_threads(max(1, os.cpu_count() or 1))
-    torch.manual_seed(cfg["seed"])
-    gen = torch.Generator().manual_seed(cfg["seed"])
+    dev, gen = rw.setup(cfg)
     model = onnx.load(cfg["model"])
     g = rw.Graph(model, trainable=False).to_device(dev)
     acts = cfg["activations"]
@@ -142,12 +139,11 @@ def run(cfg):
     for k, n in enumerate(nodes):
         for i in n.input:
             last[i] = k
-    outputs = {o.name for o in model.graph.output}
     fp = {g.input: frames}
     q = {g.input: fake_quant(frames, acts[g.input]) if g.input in acts else frames}
     learned, report = {}, []
     start = time.time()
-    emit({"event": "start", "device": str(dev), "layers": len(layers)})
+    rw.emit({"event": "start", "device": str(dev), "layers": len(layers)})
     for k, n in enumerate(nodes):
         if n.op_type == "Constant":
             continue
@@ -162,24 +158,20 @@ def run(cfg):
             learned[n.name] = ints
             report.append(r)
             vq[1] = ints * scales.view(-1, *([1] * (ints.dim() - 1)))
-            emit({"event": "layer", "done": len(report), "layers": len(layers), **r})
+            rw.emit({"event": "layer", "done": len(report), "layers": len(layers), **r})
         with torch.no_grad():
             out_q = rw.run_node(n, vq)
         for name, a, b in zip(n.output, out_f, out_q):
             fp[name] = a
             q[name] = fake_quant(b, acts[name]) if name in acts else b
         for i in set(n.input):
-            if last.get(i) == k and i not in outputs:
+            if last.get(i) == k:
                 fp.pop(i, None)
                 q.pop(i, None)
     seconds = time.time() - start
     for i, l in enumerate(cfg["layers"]):
         np.save(os.path.join(cfg["out"], f"w{i}.npy"), learned[l["node"]].cpu().numpy().astype(np.float32))
-    emit({"event": "done", "seconds": seconds, "device": str(dev), "torch": torch.__version__, "layers": report})
-
-
-def emit(obj):
-    print(json.dumps(obj), flush=True)
+    rw.emit({"event": "done", "seconds": seconds, "device": str(dev), "torch": torch.__version__, "layers": report})
 
 
 if __name__ == "__main__":
