@@ -2,7 +2,8 @@
 //! integer kernels, outputs stay close to float per channel group, degenerate calibration
 //! sets (near-black frames, outliers) give finite scales and an all-zero one is refused,
 //! mixed precision keeps layers float until its budget holds (or says it could not), learned
-//! rounding moves weights by at most one step and lowers the layers' error.
+//! rounding moves weights by at most one step and lowers the layers' error, and
+//! quantization-aware recovery trains the emitted integers towards float.
 
 mod common;
 use common::*;
@@ -240,5 +241,54 @@ fn learned_rounding_moves_weights_one_step_and_lowers_layer_error() {
         }
     }
     assert!(moved > 0 && moved < total / 2, "{moved} of {total} weights rounded the other way");
+    scales_are_finite(&b.join("model.onnx"));
+}
+
+/// Quantization-aware recovery on the trained tiny model: a few steps bring the held-out
+/// outputs closer to float, the written model reproduces the worker's fake-quantized forward
+/// on ONNX Runtime within float noise, and only integer values changed (the nodes, the scales
+/// and every other initializer are those of the same compile without it).
+#[test]
+fn quantization_aware_recovery_trains_the_emitted_integers() {
+    let dir = tempfile::tempdir().unwrap();
+    let fast = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 32");
+    let plain = variant(dir.path(), &fast, "error_budget: 0.1", "error_budget: 10.0");
+    let qat = variant(dir.path(), &plain, "error_budget: 10.0", "error_budget: 10.0, qat: {minutes: 2, epochs: 2, lr: 2.0e-3, batch: 8}");
+    let tiny = "models/trained/pdinet_v5_tiny_trained.onnx";
+    let (a, b) = (dir.path().join("plain"), dir.path().join("qat"));
+    compile(tiny, &plain, &a, &[]);
+    let r = compile(tiny, &qat, &b, &[])["qat"].clone();
+    println!("{}", serde_json::to_string_pretty(&r).unwrap());
+    assert!(r["training"]["steps"].as_u64().unwrap() >= 4, "{r}");
+    let worst = |m: &serde_json::Value| m.as_object().unwrap().iter().filter(|(k, _)| k.contains('/')).map(|(_, v)| v.as_f64().unwrap()).fold(0.0, f64::max);
+    let (before, after) = (worst(&r["output_rel_l2"]["before"]), worst(&r["output_rel_l2"]["after"]));
+    assert!(after < before, "QAT brings the worst output group closer to float: {before} -> {after}");
+    assert_eq!(r["kept"], true);
+    // Float noise in a quantized graph: ORT's reference and integer kernels differ by this
+    // much from each other (a value rounded across a step travels to the outputs).
+    let e = &r["emitted_vs_fake_quant_rel_l2"];
+    for (output, floor) in e["reference_vs_integer_kernels"].as_object().unwrap() {
+        let floor = floor.as_f64().unwrap();
+        for kernels in ["reference_kernels", "integer_kernels"] {
+            let d = e[kernels][output].as_f64().unwrap();
+            assert!(d <= 2.0 * floor + 1e-5, "{output} on ORT's {kernels} differs from the fake-quantized forward by {d}, more than twice the {floor} between ORT's own kernels");
+        }
+    }
+    let (ga, gb) = (load(&a.join("model.onnx")).graph.unwrap(), load(&b.join("model.onnx")).graph.unwrap());
+    assert_eq!(ga.node, gb.node, "QAT changes values only");
+    let (mut changed, mut weights) = (0, 0);
+    for (x, y) in ga.initializer.iter().zip(&gb.initializer) {
+        assert_eq!((&x.name, &x.dims, x.data_type), (&y.name, &y.dims, y.data_type));
+        let (u, v) = (pdi_compile::onnx::tensor_proto::to_tensor(x).unwrap(), pdi_compile::onnx::tensor_proto::to_tensor(y).unwrap());
+        let integer = x.name.ends_with("_int8") || x.name.ends_with("_bias_int32");
+        if !integer {
+            assert_eq!(u.data.to_f64(), v.data.to_f64(), "{}: only the integer weights and biases train", x.name);
+        } else if x.name.ends_with("_int8") {
+            weights += u.len();
+            changed += u.data.to_f64().iter().zip(v.data.to_f64()).filter(|(p, q)| *p != q).count();
+            assert!(v.data.to_f64().iter().all(|q| q.abs() <= 63.0), "{}: 7-bit weights stay within ±63", x.name);
+        }
+    }
+    assert!(changed > 0 && changed < weights, "{changed} of {weights} int8 weights moved");
     scales_are_finite(&b.join("model.onnx"));
 }

@@ -65,6 +65,32 @@ pub struct Options {
     pub rounding_iterations: usize,
     /// Learned rounding: calibration frames it reconstructs (the last of them).
     pub rounding_frames: usize,
+    /// Quantization-aware recovery after emission (and mixed precision): the emitted model's
+    /// integers trained on the calibration frames to match the float model. None: off.
+    pub qat: Option<Qat>,
+}
+
+/// Quantization-aware recovery's schedule (`qat: {minutes: 5}`).
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Qat {
+    /// Time budget; the cosine schedule shortens to fit it.
+    pub minutes: f64,
+    /// Passes over the calibration frames, when the budget allows.
+    pub epochs: usize,
+    /// Adam's step as a fraction of each tensor's largest magnitude: 1e-4 moves a 7-bit
+    /// weight about 0.006 of a grid step per iteration, so a few hundred steps can move it
+    /// one or two steps and no further.
+    pub lr: f64,
+    pub batch: usize,
+    /// `cuda` or `cpu`; empty: CUDA when torch sees it.
+    pub device: String,
+}
+
+impl Default for Qat {
+    fn default() -> Self {
+        Qat { minutes: 5.0, epochs: 100, lr: 1e-4, batch: 8, device: String::new() }
+    }
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -101,6 +127,7 @@ impl Default for Options {
             rounding: Rounding::Nearest,
             rounding_iterations: 400,
             rounding_frames: 16,
+            qat: None,
         }
     }
 }
@@ -206,6 +233,14 @@ impl Pass for Quantize {
             None => (base.clone(), (quantized, emitted)),
         };
         clock.lap("mixed_precision");
+        let (quantized, qat) = match &o.qat {
+            None => (quantized, None),
+            Some(q) => {
+                let (model, report) = quantization_aware(&float, quantized, &feeds, &held_out, o, q, threads)?;
+                (model, Some(report))
+            }
+        };
+        clock.lap("qat");
         let accumulated = attribution::accumulated(&float, &quantized, &emitted.dequantized, &analysis, threads)?;
         let mut layers = alone.layers.clone();
         for l in &mut layers {
@@ -245,6 +280,7 @@ impl Pass for Quantize {
             "held_out_overlaps_calibration": overlap,
             "bias_corrected_convolutions": shifts.len(),
             "rounding": learned.map_or(serde_json::json!({"method": "nearest"}), |l| l.report),
+            "qat": qat,
             "emitted": emitted,
             "warnings": warnings,
             "ort_optimized_ops": ort_ops,
@@ -261,6 +297,32 @@ impl Pass for Quantize {
             "layers": layers.iter().take(REPORTED_LAYERS).collect::<Vec<_>>(),
         }))
     }
+}
+
+/// Quantization-aware recovery of `quantized` towards `float` on the calibration frames; the
+/// trained model is kept only if its worst output group on the held-out frames got closer.
+fn quantization_aware(float: &ModelProto, quantized: ModelProto, feeds: &[Vec<(String, crate::tensor::Tensor)>], held_out: &[Vec<(String, crate::tensor::Tensor)>], o: &Options, q: &Qat, threads: usize) -> Result<(ModelProto, serde_json::Value)> {
+    if !(q.minutes > 0.0) || !(q.lr > 0.0) || q.batch == 0 || q.epochs == 0 {
+        bail!("qat needs minutes > 0, lr > 0, batch > 0 and epochs > 0");
+    }
+    let frames: Vec<crate::tensor::Tensor> = feeds.iter().map(|f| f[0].1.clone()).collect();
+    if frames.len() < q.batch {
+        bail!("qat has {} calibration frames for batches of {}; raise calib_frames or lower qat's batch", frames.len(), q.batch);
+    }
+    let schedule = crate::prune::recover::Options { minutes: q.minutes, epochs: q.epochs, lr: q.lr, batch: q.batch, seed: o.seed, device: q.device.clone(), window: None };
+    let t = crate::quant::qat::train(&quantized, float, o.weight_bits, &frames, held_out, &schedule)?;
+    let before = attribution::output_errors(float, &quantized, held_out, threads, None)?;
+    let after = attribution::output_errors(float, &t.model, held_out, threads, None)?;
+    let kept = worst_rel_l2(&after) < worst_rel_l2(&before);
+    let report = serde_json::json!({
+        "kept": kept,
+        "frames": frames.len(),
+        "held_out_frames": held_out.len(),
+        "output_rel_l2": { "before": super::prune::by_name(&before), "after": super::prune::by_name(&after) },
+        "emitted_vs_fake_quant_rel_l2": t.reproduced,
+        "training": t.outcome,
+    });
+    Ok((if kept { t.model } else { quantized }, report))
 }
 
 /// Frames timed plainly to put the range collection's cost in proportion (the same frames,

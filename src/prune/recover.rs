@@ -91,21 +91,49 @@ pub fn distill(student: &mut ModelProto, teacher: &ModelProto, kept: &HashMap<St
         }
     }
     let features = feature_specs(student, kept)?;
+    let job = Job { heads, features, extra: serde_json::json!({}), outputs: false, label: "recover" };
+    Ok(train(student, teacher, frames, held_out, o, job)?.0)
+}
+
+/// What a training run distills beyond the common options.
+pub(crate) struct Job {
+    /// Head convolution values and how to read them (`head_specs`).
+    pub heads: Vec<serde_json::Value>,
+    /// Intermediate values matched against the teacher's (`feature_specs`).
+    pub features: Vec<serde_json::Value>,
+    /// Further worker settings (a quantized student's weight range, per-tensor steps).
+    pub extra: serde_json::Value,
+    /// Whether the worker also returns the trained module's graph outputs on `held_out`.
+    pub outputs: bool,
+    /// The progress bar's name.
+    pub label: &'static str,
+}
+
+/// Runs the worker on `student` and `teacher`; writes the trained values into `student` and
+/// returns the worker's account and, when asked, its outputs on `held_out` (one tensor per
+/// graph output, frames stacked).
+pub(crate) fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Tensor], held_out: &[Tensor], o: &Options, job: Job) -> Result<(Outcome, Vec<Tensor>)> {
     let work = tempfile::tempdir()?;
     let dir = work.path();
     crate::onnx::save(student, &dir.join("student.onnx"))?;
     crate::onnx::save(teacher, &dir.join("teacher.onnx"))?;
     write_frames(frames, &dir.join("frames.npy"))?;
     write_frames(held_out, &dir.join("held_out.npy"))?;
-    let config = serde_json::json!({
+    let outputs_to = dir.join("outputs");
+    std::fs::create_dir(&outputs_to)?;
+    let mut config = serde_json::json!({
         "student": dir.join("student.onnx"), "teacher": dir.join("teacher.onnx"), "out": dir.join("trained.onnx"),
-        "frames": dir.join("frames.npy"), "held_out": dir.join("held_out.npy"), "heads": heads, "features": features,
+        "frames": dir.join("frames.npy"), "held_out": dir.join("held_out.npy"), "heads": job.heads, "features": job.features,
         "window": o.window, "minutes": o.minutes, "epochs": o.epochs, "lr": o.lr, "batch": o.batch, "seed": o.seed,
         "device": if o.device.is_empty() { serde_json::Value::Null } else { o.device.clone().into() },
+        "outputs_to": if job.outputs { serde_json::json!(outputs_to) } else { serde_json::Value::Null },
     });
+    if let (Some(c), Some(extra)) = (config.as_object_mut(), job.extra.as_object()) {
+        c.extend(extra.clone());
+    }
     std::fs::write(dir.join("config.json"), serde_json::to_vec(&config)?)?;
     let pb = ProgressBar::new(1);
-    pb.set_style(ProgressStyle::with_template("recover [{bar:30}] {pos}/{len} steps, {msg} ({elapsed})").expect("valid template").progress_chars("=> "));
+    pb.set_style(ProgressStyle::with_template(&format!("{} [{{bar:30}}] {{pos}}/{{len}} steps, {{msg}} ({{elapsed}})", job.label)).expect("valid template").progress_chars("=> "));
     let config_path = dir.join("config.json");
     let args = [OsStr::new("train"), config_path.as_os_str()];
     let done = crate::pyenv::run_worker(dir, ("recover_worker.py", WORKER), &[], &args, |event| match event["event"].as_str() {
@@ -121,7 +149,14 @@ pub fn distill(student: &mut ModelProto, teacher: &ModelProto, kept: &HashMap<St
     let outcome: Outcome = serde_json::from_value(done?)?;
     let trained = crate::onnx::load(&dir.join("trained.onnx"))?.model;
     take_weights(student, &trained)?;
-    Ok(outcome)
+    let n_outputs = student.graph.as_ref().map_or(0, |g| g.output.len());
+    let outputs = if job.outputs { (0..n_outputs).map(|k| read_tensor(&outputs_to.join(format!("out{k}.npy")))).collect::<Result<_>>()? } else { Vec::new() };
+    Ok((outcome, outputs))
+}
+
+fn read_tensor(path: &Path) -> Result<Tensor> {
+    let a = crate::optics::npy::read(path)?;
+    Ok(Tensor::f32(a.shape, a.data))
 }
 
 /// Runs every node of `model` in the worker's torch interpreter and in ONNX Runtime on

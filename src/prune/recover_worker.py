@@ -6,6 +6,9 @@ weights and biases are parameters; everything else (PSF gate maps, upsampling ke
 decode constants) stays fixed. The student learns to match the unpruned teacher's head
 convolutions (the logits before the decode) on unlabelled frames, freshly augmented each
 epoch, and the trained initializers go back into the student ONNX file unchanged in shape.
+A quantized (QDQ) student trains the same way (the `quantize` pass's quantization-aware
+recovery): its QuantizeLinear / DequantizeLinear nodes are fake quantization with
+straight-through rounding, its integer weights and biases the parameters (see `Graph`).
 
   python recover_worker.py train CONFIG.json   # progress as JSON lines on stdout
   python recover_worker.py check MODEL.onnx FRAMES.npy   # every node output vs ONNX Runtime
@@ -85,9 +88,47 @@ def ints(t):
     return None if t is None else [int(v) for v in t.flatten().tolist()]
 
 
+def ste_round(x):
+    """Rounding half to even (as ONNX Runtime's QuantizeLinear) whose gradient passes
+    straight through: what quantization-aware training differentiates."""
+    return x + (torch.round(x) - x).detach()
+
+
+def integer_bounds(dtype):
+    return {torch.uint8: (0, 255), torch.int8: (-128, 127), torch.int32: (-(2 ** 31), 2 ** 31 - 1)}[dtype]
+
+
+def along(p, x, axis):
+    """A scale or zero point broadcast against x: per tensor, or per channel along `axis`."""
+    if p.dim() == 0 or p.numel() == 1:
+        return p.reshape(())
+    shape = [1] * x.dim()
+    shape[axis % x.dim()] = -1
+    return p.reshape(shape)
+
+
+def quantize_linear(x, scale, zp, a):
+    """The integers ONNX Runtime would store, as floats (so gradients pass); outside the
+    integer range the clamp stops them, as a saturated value does not move."""
+    axis = a.get("axis", 1)
+    lo, hi = integer_bounds(zp.dtype) if zp is not None else (0, 255)
+    z = 0.0 if zp is None else along(zp.float(), x, axis)
+    return torch.clamp(ste_round(x / along(scale, x, axis)) + z, lo, hi)
+
+
+def dequantize_linear(q, scale, zp, a):
+    axis = a.get("axis", 1)
+    z = 0.0 if zp is None else along(zp.float(), q, axis)
+    return (q.float() - z) * along(scale, q, axis)
+
+
 def run_node(n, v):
     """Outputs of node n given its input values v (None for omitted optional inputs)."""
     a, op = attrs(n), n.op_type
+    if op == "QuantizeLinear":
+        return [quantize_linear(v[0], v[1], v[2] if len(v) > 2 else None, a)]
+    if op == "DequantizeLinear":
+        return [dequantize_linear(v[0], v[1], v[2] if len(v) > 2 else None, a)]
     if op == "Conv":
         return [conv(v[0], v[1], v[2] if len(v) > 2 else None, a)]
     if op == "ConvTranspose":
@@ -139,24 +180,76 @@ def cone(nodes, wanted):
     return keep[::-1]
 
 
-class Graph(torch.nn.Module):
-    """An ONNX graph as a torch module: Conv weights and biases become parameters."""
+def fake_quant(x, scale, zp, lo, hi):
+    """QuantizeLinear then DequantizeLinear in three passes. torch's fused kernel multiplies
+    by 1/scale, which rounds a few values the other way from ONNX Runtime's x / scale; so the
+    division comes first and the kernel runs at scale 1 (its clamp and gradient mask are
+    unchanged by it)."""
+    return torch.fake_quantize_per_tensor_affine(x / scale, 1.0, zp, lo, hi) * scale
 
-    def __init__(self, model, trainable=True):
+
+def fused_pairs(g):
+    """QuantizeLinear outputs read only by DequantizeLinear nodes with the same per-tensor
+    scale and zero point, with (scale, zero point, qmin, qmax): such a pair runs as one fake
+    quantization, three elementwise passes over the activation instead of eight (the same
+    round-half-to-even, clamp and straight-through gradient; `check` compares both
+    forms with ONNX Runtime)."""
+    consts = {t.name: numpy_helper.to_array(t) for t in g.initializer}
+    readers = {}
+    for n in g.node:
+        for i in n.input:
+            readers.setdefault(i, []).append(n)
+    outputs = {o.name for o in g.output}
+    fused = {}
+    for n in g.node:
+        if n.op_type != "QuantizeLinear" or len(n.input) < 3 or n.output[0] in outputs:
+            continue
+        scale, zp = consts.get(n.input[1]), consts.get(n.input[2])
+        rs = readers.get(n.output[0], [])
+        if scale is None or zp is None or scale.size != 1 or zp.dtype not in (np.uint8, np.int8) or not rs:
+            continue
+        if all(r.op_type == "DequantizeLinear" and list(r.input[1:]) == list(n.input[1:]) for r in rs):
+            lo, hi = (0, 255) if zp.dtype == np.uint8 else (-128, 127)
+            fused[n.output[0]] = (float(scale.reshape(())), int(zp.reshape(())), lo, hi)
+    return fused
+
+
+# The largest int32 a float32 holds exactly (its spacing is 128 just below 2^31): int32
+# biases trained as float32 stay in range when written back.
+INT32_IN_F32 = 2 ** 31 - 128
+
+
+class Graph(torch.nn.Module):
+    """An ONNX graph as a torch module: Conv weights and biases become parameters.
+
+    In a quantized (QDQ) graph they are integers behind DequantizeLinear: each becomes a
+    float parameter in integer units, rounded (straight through) and clamped to `weight_qmax`
+    (int8 weights) or int32's range (biases) wherever it is read, so the forward is the
+    emitted model's and the parameter keeps what a step moved below one integer."""
+
+    def __init__(self, model, trainable=True, weight_qmax=127, fuse=True):
         super().__init__()
         g = model.graph
         self.nodes = list(g.node)
+        self.fused = fused_pairs(g) if fuse else {}
         self.input = [i.name for i in g.input if i.name not in {t.name for t in g.initializer}][0]
         conv_params = {i for n in self.nodes if n.op_type == "Conv" for i in n.input[1:]}
+        integer_params = {n.input[0] for n in self.nodes if n.op_type == "DequantizeLinear" and n.output[0] in conv_params}
         self.params = torch.nn.ParameterDict()
         self.key = {}
         self.consts = {}
+        self.bounds = {}  # parameter key -> (lo, hi) of an integer initializer
         for t in g.initializer:
             arr = numpy_helper.to_array(t)
             if trainable and t.name in conv_params and arr.dtype == np.float32:
                 k = f"p{len(self.params)}"
                 self.params[k] = torch.nn.Parameter(torch.from_numpy(arr.copy()))
                 self.key[t.name] = k
+            elif trainable and t.name in integer_params and arr.dtype in (np.int8, np.int32):
+                k = f"p{len(self.params)}"
+                self.params[k] = torch.nn.Parameter(torch.from_numpy(arr.astype(np.float32)))
+                self.key[t.name] = k
+                self.bounds[k] = (-weight_qmax, weight_qmax) if arr.dtype == np.int8 else (-INT32_IN_F32, INT32_IN_F32)
             else:
                 self.consts[t.name] = torch.from_numpy(arr.copy())
         for n in self.nodes:
@@ -172,7 +265,10 @@ class Graph(torch.nn.Module):
         if name == "":
             return None
         if name in self.key:
-            return self.params[self.key[name]]
+            k = self.key[name]
+            if k in self.bounds:
+                return ste_round(self.params[k].clamp(*self.bounds[k]))
+            return self.params[k]
         if name in self.consts:
             return self.consts[name]
         return env[name]
@@ -186,6 +282,12 @@ class Graph(torch.nn.Module):
         for n in self.plans[key]:
             if n.op_type == "Constant":
                 continue
+            if n.op_type == "QuantizeLinear" and n.output[0] in self.fused:
+                env[n.output[0]] = fake_quant(env[n.input[0]], *self.fused[n.output[0]])
+                continue
+            if n.op_type == "DequantizeLinear" and n.input[0] in self.fused:
+                env[n.output[0]] = env[n.input[0]]
+                continue
             for o, val in zip(n.output, run_node(n, [self.value(i, env) for i in n.input])):
                 env[o] = val
         return [env[w] for w in wanted]
@@ -194,8 +296,25 @@ class Graph(torch.nn.Module):
         """The trained parameters into `model`'s initializers (same names, shapes, order)."""
         for t in model.graph.initializer:
             if t.name in self.key:
-                arr = self.params[self.key[t.name]].detach().cpu().numpy().astype(np.float32)
+                k = self.key[t.name]
+                p = self.params[k].detach()
+                if k in self.bounds:
+                    arr = torch.round(p.clamp(*self.bounds[k])).cpu().numpy().astype(numpy_helper.to_array(t).dtype)
+                else:
+                    arr = p.cpu().numpy().astype(np.float32)
                 t.CopyFrom(numpy_helper.from_array(arr, t.name))
+
+    def param_groups(self, lr, relative):
+        """Adam's groups: one at `lr`, or (relative) one per tensor at lr times the tensor's
+        largest magnitude, so integer weights, int32 biases and float weights all move by
+        about the same fraction of their range per step."""
+        if not relative:
+            return [{"params": list(self.parameters()), "lr": lr, "base_lr": lr}]
+        groups = []
+        for p in self.parameters():
+            step = lr * max(float(p.detach().abs().max()), 1e-12)
+            groups.append({"params": [p], "lr": step, "base_lr": step})
+        return groups
 
 
 def head_loss(s, t, spec):
@@ -216,7 +335,14 @@ def head_loss(s, t, spec):
         pt = torch.softmax(t.view(b, 4, r, h, w), 2)
         kl = (pt * (torch.log(pt.clamp(min=1e-12)) - ls)).sum(2).mean(1, keepdim=True)  # [b, 1, h, w]
         wgt = spec["weight"] if spec.get("weight") is not None else torch.ones_like(kl)
-        return (kl * wgt).sum() / wgt.sum().clamp(min=1)
+        loss = (kl * wgt).sum() / wgt.sum().clamp(min=1)
+        if spec.get("edge_weight"):
+            # The box edges themselves (each side's expected distance, in bins): where a
+            # distribution's small changes move the edge, which IoU at 0.95 feels.
+            bins = torch.arange(r, dtype=s.dtype, device=s.device).view(1, 1, r, 1, 1)
+            edge = ((ls.exp() - pt) * bins).sum(2).abs().mean(1, keepdim=True)
+            loss = loss + spec["edge_weight"] * (edge * wgt).sum() / wgt.sum().clamp(min=1)
+        return loss
     raise ValueError(kind)
 
 
@@ -307,7 +433,7 @@ def setup(cfg):
 def train(cfg):
     dev, gen = setup(cfg)
     student_model = onnx.load(cfg["student"])
-    student = Graph(student_model).to_device(dev)
+    student = Graph(student_model, weight_qmax=cfg.get("weight_qmax", 127)).to_device(dev)
     heads, features = cfg["heads"], cfg.get("features", [])
     names = [h["value"] for h in heads] + [f["value"] for f in features]
     teacher = ort_teacher(cfg["teacher"], names) if dev.type == "cpu" else Graph(onnx.load(cfg["teacher"]), trainable=False).to_device(dev).eval()
@@ -329,7 +455,7 @@ def train(cfg):
                 tot += float(total_loss(student(student_in(x), names), teacher(x, names), heads, features)) * len(x)
             return tot / len(held)
 
-    opt = torch.optim.Adam(student.parameters(), lr=cfg["lr"])
+    opt = torch.optim.Adam(student.param_groups(cfg["lr"], cfg.get("relative_lr", False)))
     start, before = time.time(), held_loss()
     emit({"event": "start", "device": str(dev), "parameters": sum(p.numel() for p in student.parameters()), "held_out_loss": before, "frames": n})
     most = cfg["epochs"] * per_epoch
@@ -349,7 +475,7 @@ def train(cfg):
             loss = total_loss(student(student_in(x), names), t, heads, features)
             # Cosine decay over the steps the budget allows (re-estimated as steps are timed).
             for g in opt.param_groups:
-                g["lr"] = cfg["lr"] * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / steps)))
+                g["lr"] = g["base_lr"] * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / steps)))
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -370,13 +496,28 @@ def train(cfg):
     after = held_loss()
     student.write_back(student_model)
     onnx.save(student_model, cfg["out"])
+    if cfg.get("outputs_to"):
+        save_outputs(student, student_model, held, cfg["outputs_to"])
     emit({"event": "done", "held_out_loss_before": before, "held_out_loss_after": after, "loss_per_epoch": curve, "epochs": epoch,
           "steps": step, "seconds": seconds, "frames_per_second": seen / max(seconds, 1e-9), "device": str(dev),
           "torch": torch.__version__})
 
 
+def save_outputs(g, model, frames, folder):
+    """The graph outputs of the trained module, frame by frame (the decode fixes a batch of
+    1), as out{k}.npy: what the written model must reproduce on ONNX Runtime."""
+    names = [o.name for o in model.graph.output]
+    with torch.no_grad():
+        per_frame = [g(frames[i:i + 1], names) for i in range(len(frames))]
+    for k in range(len(names)):
+        np.save(os.path.join(folder, f"out{k}.npy"), torch.cat([f[k] for f in per_frame]).cpu().numpy().astype(np.float32))
+
+
 def check(model_path, frames_path):
-    """Every node output of the model by the interpreter against ONNX Runtime, on the frames."""
+    """Every node of the model by the interpreter against ONNX Runtime, on the frames: each
+    node alone, fed ONNX Runtime's own values for its inputs (in a quantized graph a float-noise
+    difference upstream flips a rounding step, which is not the op's error); the fused
+    QuantizeLinear -> DequantizeLinear pairs count as DequantizeLinear."""
     import onnxruntime as ort
 
     m = onnx.load(model_path)
@@ -393,22 +534,30 @@ def check(model_path, frames_path):
     g = Graph(m, trainable=False)
     x = np.load(frames_path)[:2]
     worst = {}
+
+    def compare(op, r, v):
+        r, v = r.astype(np.float64), v.numpy().astype(np.float64)
+        if r.shape != v.shape:
+            worst[op] = float("inf")
+            return
+        # Error on the value's own scale, floored at 1: a sigmoid's near-zero outputs differ
+        # by ORT's approximation (~1e-6), not by a wrong op.
+        worst[op] = max(worst.get(op, 0.0), float(np.abs(r - v).max() / max(np.abs(r).max(), 1.0)))
+
+    producer = {o: n for n in m.graph.node for o in n.output}
     for i in range(len(x)):
         ref = dict(zip([o.name for o in sess.get_outputs()], sess.run(None, {g.input: x[i:i + 1]})))
+        ref[g.input] = x[i:i + 1]
+        value = lambda name: None if name == "" else g.consts[name] if name in g.consts else torch.from_numpy(np.asarray(ref[name]))
         with torch.no_grad():
-            got = g(torch.from_numpy(x[i:i + 1]), outs)
-        for n in m.graph.node:
-            for o in n.output:
-                if not o or o not in ref:
+            for n in m.graph.node:
+                if n.op_type == "Constant" or not all(o in ref for o in n.output if o):
                     continue
-                r, v = ref[o].astype(np.float64), got[outs.index(o)].numpy().astype(np.float64)
-                if r.shape != v.shape:
-                    worst[n.op_type] = max(worst.get(n.op_type, 0.0), float("inf"))
-                    continue
-                # Error on the value's own scale, floored at 1: a sigmoid's near-zero outputs
-                # differ by ORT's approximation (~1e-6), not by a wrong op.
-                err = float(np.abs(r - v).max() / max(np.abs(r).max(), 1.0))
-                worst[n.op_type] = max(worst.get(n.op_type, 0.0), err)
+                for o, v in zip(n.output, run_node(n, [value(name) for name in n.input])):
+                    compare(n.op_type, ref[o], v)
+                if n.op_type == "DequantizeLinear" and n.input[0] in g.fused:
+                    q = producer[n.input[0]]
+                    compare(n.op_type, ref[n.output[0]], fake_quant(value(q.input[0]), *g.fused[n.input[0]]))
     print(json.dumps({"ops": worst}))
 
 

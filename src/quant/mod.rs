@@ -6,6 +6,7 @@ pub mod collect;
 pub mod histogram;
 pub mod params;
 pub mod plan;
+pub mod qat;
 pub mod qdq;
 pub mod qlinear;
 pub mod range;

@@ -30,9 +30,8 @@ ZETA, GAMMA = 1.1, -0.1
 
 
 def fake_quant(x, p):
-    """QuantizeLinear then DequantizeLinear (round half to even, like ONNX Runtime)."""
-    s, z = p["scale"], p["zero_point"]
-    return (torch.clamp(torch.round(x / s) + z, p["qmin"], p["qmax"]) - z) * s
+    """QuantizeLinear then DequantizeLinear with the pass's parameters, as ONNX Runtime does."""
+    return rw.fake_quant(x, p["scale"], p["zero_point"], p["qmin"], p["qmax"])
 
 
 def h_of(v):

@@ -1,0 +1,94 @@
+//! Quantization-aware recovery: the emitted QDQ model itself is the student. The torch
+//! worker reads its QuantizeLinear / DequantizeLinear nodes as fake quantization with
+//! straight-through rounding, and its int8 weights and int32 biases as float parameters in
+//! integer units, rounded and clamped wherever they are read (`recover_worker.Graph`); so the
+//! forward it trains is the emitted model's (same scales, zero points, rounding, clipping,
+//! layers kept float), and what comes back are new integers in the same initializers. The
+//! float model (unpruned, or pruned and recovered) is the teacher, matched on the head
+//! convolutions' logits as in `recover`. Activation scales stay those calibration chose.
+
+use crate::metrics::tensor_error::ErrorSums;
+use crate::onnx::proto::ModelProto;
+use crate::prune::recover::{self, Job, Outcome};
+use crate::runtime::ort_runtime::OrtRuntime;
+use crate::runtime::Runtime;
+use crate::tensor::Tensor;
+use anyhow::{anyhow, bail, Result};
+use ort::session::builder::GraphOptimizationLevel;
+use std::collections::BTreeMap;
+
+/// Weight of the YOLOv8 box edges' own error (each side's expected distance, in bins) beside
+/// the DFL distributions' KL: INT8 moves the edges by fractions of a bin, which the KL barely
+/// sees and IoU at 0.95 does.
+const EDGE_WEIGHT: f64 = 1.0;
+
+pub struct Trained {
+    /// The QDQ model with its trained integers.
+    pub model: ModelProto,
+    pub outcome: Outcome,
+    /// rel L2 of each graph output of the written model on ONNX Runtime against the worker's
+    /// fake-quantized forward, on the held-out frames: with ORT's reference kernels (float
+    /// arithmetic on dequantized values, what the worker computes) and with its fused integer
+    /// kernels; and the two kernel sets against each other, the floor of float noise in a
+    /// quantized graph (a sum taken in another order lands a value on the other side of a
+    /// rounding boundary now and then, and the step it takes travels to the outputs).
+    pub reproduced: serde_json::Value,
+}
+
+/// Trains the integers of `quantized` (emitted from `float` with `weight_bits`-bit weights) to
+/// reproduce `float`'s head logits on `frames`; `held_out` (feeds of one image input) judge it.
+pub fn train(quantized: &ModelProto, float: &ModelProto, weight_bits: u32, frames: &[Tensor], held_out: &[Vec<(String, Tensor)>], o: &recover::Options) -> Result<Trained> {
+    let mut heads = recover::head_specs(float)?;
+    for h in heads.iter_mut().filter(|h| h["kind"] == "v8box") {
+        h["edge_weight"] = serde_json::json!(EDGE_WEIGHT);
+    }
+    let held: Vec<Tensor> = held_out.iter().map(|f| f[0].1.clone()).collect();
+    let qmax = (1i32 << (weight_bits - 1)) - 1;
+    // Steps relative to each tensor's largest magnitude: an int8 weight, an int32 bias (in
+    // units thousands of times smaller) and a float layer's weight all move alike.
+    let extra = serde_json::json!({"weight_qmax": qmax, "relative_lr": true});
+    let mut model = quantized.clone();
+    let (outcome, fake_quant) = recover::train(&mut model, float, frames, &held, o, Job { heads, features: Vec::new(), extra, outputs: true, label: "qat" })?;
+    let names: Vec<String> = model.graph.as_ref().map(|g| g.output.iter().map(|o| o.name.clone()).collect()).unwrap_or_default();
+    let fake_quant: Vec<(String, Vec<f32>)> = names.into_iter().zip(fake_quant).map(|(n, t)| Ok((n, t.as_f32().ok_or_else(|| anyhow!("fake-quantized outputs are f32"))?.to_vec()))).collect::<Result<_>>()?;
+    let reference = run_ort(&model, GraphOptimizationLevel::Disable, held_out)?;
+    let integer = run_ort(&model, GraphOptimizationLevel::Level3, held_out)?;
+    let reproduced = serde_json::json!({
+        "reference_kernels": rel_l2(&fake_quant, &reference)?,
+        "integer_kernels": rel_l2(&fake_quant, &integer)?,
+        "reference_vs_integer_kernels": rel_l2(&reference, &integer)?,
+    });
+    Ok(Trained { model, outcome, reproduced })
+}
+
+/// `model`'s graph outputs on ORT at `level`, each with the frames stacked (as the worker's).
+fn run_ort(model: &ModelProto, level: GraphOptimizationLevel, feeds: &[Vec<(String, Tensor)>]) -> Result<Vec<(String, Vec<f32>)>> {
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut rt = OrtRuntime::with_options(model, level, threads)?;
+    let mut stacked: Vec<(String, Vec<f32>)> = Vec::new();
+    for feed in feeds {
+        for (k, (name, t)) in rt.run(feed)?.into_iter().enumerate() {
+            if stacked.len() <= k {
+                stacked.push((name, Vec::new()));
+            }
+            stacked[k].1.extend(t.data.to_f64().into_iter().map(|v| v as f32));
+        }
+    }
+    Ok(stacked)
+}
+
+/// rel L2 of each output of `candidate` against the same output of `reference`.
+fn rel_l2(reference: &[(String, Vec<f32>)], candidate: &[(String, Vec<f32>)]) -> Result<BTreeMap<String, f64>> {
+    if reference.len() != candidate.len() || reference.iter().zip(candidate).any(|(a, b)| a.1.len() != b.1.len()) {
+        bail!("the QAT worker's outputs and ONNX Runtime's differ in number or size; this is a bug, please report it");
+    }
+    Ok(reference
+        .iter()
+        .zip(candidate)
+        .map(|((name, a), (_, b))| {
+            let mut s = ErrorSums::default();
+            s.add(a.iter().map(|&v| v as f64), b.iter().map(|&v| v as f64));
+            (name.clone(), s.finish().rel_l2)
+        })
+        .collect())
+}
