@@ -1,7 +1,8 @@
 //! `quantize`: post-training INT8 in QDQ form, calibrated on camera (or simulated) frames.
 //!
 //! Needs: a float detection graph with constant weights and one image input (the lossless
-//! passes first; prune before it if wanted); opset >= 13.
+//! passes first; prune before it if wanted); opset >= 13; for `rounding: learned` and `qat`,
+//! PyTorch (the cache's torch venv, installed on first use) and, for `qat`, a YOLOv5 or YOLOv8 head.
 //! Guarantees: outputs keep names, shapes and float type; the head convolutions' outputs and
 //! the decode after them stay float (boxes and scores never share a scale); every scale is
 //! finite and positive, whatever the frames (a constant or all-zero activation gets a fixed
@@ -9,7 +10,9 @@
 //! Reports: the range method and frames, warnings, the rounding (learned: each layer's output
 //! error with nearest and learned rounding), every quantized layer's error against
 //! float alone and accumulated (worst first), the bias shifts corrected, the layers mixed
-//! precision kept float and why, and the outputs' error per channel group on held-out frames
+//! precision kept float and why, quantization-aware recovery (`qat`: its training, the output
+//! error before and after, the written model on ONNX Runtime against the worker's
+//! fake-quantized forward), and the outputs' error per channel group on held-out frames
 //! (and under each of `calib_conditions`, the stress conditions mixed into calibration).
 
 use crate::calib_frames::image_feeds;
