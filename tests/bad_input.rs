@@ -256,3 +256,20 @@ fn a_three_channel_input_is_fed_replicated_frames() {
         assert!(e <= max_rel_l2, "{}: rel L2 {e}", candidate.display());
     }
 }
+
+/// Impossible quantization-aware recovery settings are refused in one line before any
+/// calibration or training, and nothing is written.
+#[test]
+fn bad_qat_settings_are_refused_before_calibration() {
+    let dir = tempfile::tempdir().unwrap();
+    let qat = std::fs::read_to_string(repo().join("passes/detect-int8-qat.yaml")).unwrap();
+    for (setting, needle) in [("{minutes: 0}", "qat needs minutes > 0"), ("{lr: .nan}", "qat needs minutes > 0"), ("{batch: 0}", "batch > 0"), ("{steps: 3}", "unknown field `steps`")] {
+        let recipe = dir.path().join("qat.yaml");
+        std::fs::write(&recipe, qat.replace("qat: {minutes: 5}", &format!("qat: {setting}"))).unwrap();
+        let out = dir.path().join("out");
+        let r = cli(&["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap()]);
+        assert_eq!(r.code, 2, "{setting}: {}", r.stderr);
+        assert!(r.stderr.contains(needle) && r.stderr.trim().lines().count() == 1, "{setting}: {}", r.stderr);
+        assert!(!out.join("model.onnx").exists(), "{setting}: nothing written");
+    }
+}

@@ -163,6 +163,10 @@ impl Pass for Quantize {
         if !(50.0..=100.0).contains(&o.percentile) {
             bail!("percentile {} must be between 50 and 100", o.percentile);
         }
+        // Checked before calibration, which takes seconds to minutes; `!(x > 0)` refuses NaN too.
+        if o.qat.as_ref().is_some_and(|q| !(q.minutes > 0.0) || !(q.lr > 0.0) || q.batch == 0 || q.epochs == 0) {
+            bail!("qat needs minutes > 0, lr > 0, batch > 0 and epochs > 0");
+        }
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         let float = model.clone();
         let g = float.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
@@ -305,9 +309,6 @@ impl Pass for Quantize {
 /// Quantization-aware recovery of `quantized` towards `float` on the calibration frames; the
 /// trained model is kept only if its worst output group on the held-out frames got closer.
 fn quantization_aware(float: &ModelProto, quantized: ModelProto, feeds: &[Vec<(String, crate::tensor::Tensor)>], held_out: &[Vec<(String, crate::tensor::Tensor)>], o: &Options, q: &Qat, threads: usize) -> Result<(ModelProto, serde_json::Value)> {
-    if !(q.minutes > 0.0) || !(q.lr > 0.0) || q.batch == 0 || q.epochs == 0 {
-        bail!("qat needs minutes > 0, lr > 0, batch > 0 and epochs > 0");
-    }
     let frames: Vec<crate::tensor::Tensor> = feeds.iter().map(|f| f[0].1.clone()).collect();
     if frames.len() < q.batch {
         bail!("qat has {} calibration frames for batches of {}; raise calib_frames or lower qat's batch", frames.len(), q.batch);
