@@ -240,11 +240,12 @@ impl Pass for Quantize {
             None => (base.clone(), (quantized, emitted)),
         };
         clock.lap("mixed_precision");
-        let (quantized, qat) = match &o.qat {
-            None => (quantized, None),
+        // QAT measures the model it keeps on the held-out frames; those errors are reported below.
+        let (quantized, qat, kept_errors) = match &o.qat {
+            None => (quantized, None, None),
             Some(q) => {
-                let (model, report) = quantization_aware(&float, quantized, &feeds, &held_out, o, q, threads)?;
-                (model, Some(report))
+                let (model, report, errors) = quantization_aware(&float, quantized, &feeds, &held_out, o, q, threads)?;
+                (model, Some(report), Some(errors))
             }
         };
         clock.lap("qat");
@@ -256,7 +257,10 @@ impl Pass for Quantize {
         layers.retain(|l| current.quantized.contains(&alone.node_of_value[&l.value]));
         layers.sort_by(|a, b| b.accumulated.map_or(b.alone.rel_l2, |e| e.rel_l2).total_cmp(&a.accumulated.map_or(a.alone.rel_l2, |e| e.rel_l2)));
         clock.lap("accumulated_errors");
-        let outputs = attribution::output_errors(&float, &quantized, &held_out, threads, None)?;
+        let outputs = match kept_errors {
+            Some(errors) => errors,
+            None => attribution::output_errors(&float, &quantized, &held_out, threads, None)?,
+        };
         let mut stressed = Vec::new();
         for c in &conditions {
             let frames: Vec<Vec<(String, crate::tensor::Tensor)>> = held_out.iter().enumerate().map(|(i, f)| f.iter().map(|(n, t)| (n.clone(), c.apply_tensor(t, o.seed ^ (i as u64 + 1) << 20))).collect()).collect();
@@ -308,13 +312,14 @@ impl Pass for Quantize {
 
 /// Quantization-aware recovery of `quantized` towards `float` on the calibration frames; the
 /// trained model is kept only if its worst output group on the held-out frames got closer.
-fn quantization_aware(float: &ModelProto, quantized: ModelProto, feeds: &[Vec<(String, crate::tensor::Tensor)>], held_out: &[Vec<(String, crate::tensor::Tensor)>], o: &Options, q: &Qat, threads: usize) -> Result<(ModelProto, serde_json::Value)> {
+/// Returns the model kept, the report, and the kept model's held-out output errors.
+fn quantization_aware(float: &ModelProto, quantized: ModelProto, feeds: &[Vec<(String, crate::tensor::Tensor)>], held_out: &[Vec<(String, crate::tensor::Tensor)>], o: &Options, q: &Qat, threads: usize) -> Result<(ModelProto, serde_json::Value, Vec<attribution::OutputError>)> {
     let frames: Vec<crate::tensor::Tensor> = feeds.iter().map(|f| f[0].1.clone()).collect();
     if frames.len() < q.batch {
         bail!("qat has {} calibration frames for batches of {}; raise calib_frames or lower qat's batch", frames.len(), q.batch);
     }
     let schedule = crate::prune::recover::Options { minutes: q.minutes, epochs: q.epochs, lr: q.lr, batch: q.batch, seed: o.seed, device: q.device.clone(), window: None };
-    let t = crate::quant::qat::train(&quantized, float, o.weight_bits, &frames, held_out, &schedule)?;
+    let t = crate::quant::qat::train(&quantized, float, o.weight_bits, &frames, held_out, &schedule, threads)?;
     let before = attribution::output_errors(float, &quantized, held_out, threads, None)?;
     let after = attribution::output_errors(float, &t.model, held_out, threads, None)?;
     let kept = worst_rel_l2(&after) < worst_rel_l2(&before);
@@ -326,7 +331,7 @@ fn quantization_aware(float: &ModelProto, quantized: ModelProto, feeds: &[Vec<(S
         "emitted_vs_fake_quant_rel_l2": t.reproduced,
         "training": t.outcome,
     });
-    Ok((if kept { t.model } else { quantized }, report))
+    Ok(if kept { (t.model, report, after) } else { (quantized, report, before) })
 }
 
 /// Frames timed plainly to put the range collection's cost in proportion (the same frames,

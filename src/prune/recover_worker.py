@@ -209,8 +209,7 @@ def fused_pairs(g):
         if scale is None or zp is None or scale.size != 1 or zp.dtype not in (np.uint8, np.int8) or not rs:
             continue
         if all(r.op_type == "DequantizeLinear" and list(r.input[1:]) == list(n.input[1:]) for r in rs):
-            lo, hi = (0, 255) if zp.dtype == np.uint8 else (-128, 127)
-            fused[n.output[0]] = (float(scale.reshape(())), int(zp.reshape(())), lo, hi)
+            fused[n.output[0]] = (float(scale.reshape(())), int(zp.reshape(())), *integer_bounds(torch.from_numpy(zp).dtype))
     return fused
 
 

@@ -36,8 +36,9 @@ pub struct Trained {
 }
 
 /// Trains the integers of `quantized` (emitted from `float` with `weight_bits`-bit weights) to
-/// reproduce `float`'s head logits on `frames`; `held_out` (feeds of one image input) judge it.
-pub fn train(quantized: &ModelProto, float: &ModelProto, weight_bits: u32, frames: &[Tensor], held_out: &[Vec<(String, Tensor)>], o: &recover::Options) -> Result<Trained> {
+/// reproduce `float`'s head logits on `frames`; `held_out` (feeds of one image input) judge it,
+/// run on ONNX Runtime with `threads`.
+pub fn train(quantized: &ModelProto, float: &ModelProto, weight_bits: u32, frames: &[Tensor], held_out: &[Vec<(String, Tensor)>], o: &recover::Options, threads: usize) -> Result<Trained> {
     let mut heads = recover::head_specs(float)?;
     for h in heads.iter_mut().filter(|h| h["kind"] == "v8box") {
         h["edge_weight"] = serde_json::json!(EDGE_WEIGHT);
@@ -51,8 +52,8 @@ pub fn train(quantized: &ModelProto, float: &ModelProto, weight_bits: u32, frame
     let (outcome, fake_quant) = recover::train(&mut model, float, frames, &held, o, Job { heads, features: Vec::new(), extra, outputs: true, label: "qat" })?;
     let names: Vec<String> = model.graph.as_ref().map(|g| g.output.iter().map(|o| o.name.clone()).collect()).unwrap_or_default();
     let fake_quant: Vec<(String, Vec<f32>)> = names.into_iter().zip(fake_quant).map(|(n, t)| Ok((n, t.as_f32().ok_or_else(|| anyhow!("fake-quantized outputs are f32"))?.to_vec()))).collect::<Result<_>>()?;
-    let reference = run_ort(&model, GraphOptimizationLevel::Disable, held_out)?;
-    let integer = run_ort(&model, GraphOptimizationLevel::Level3, held_out)?;
+    let reference = run_ort(&model, GraphOptimizationLevel::Disable, held_out, threads)?;
+    let integer = run_ort(&model, GraphOptimizationLevel::Level3, held_out, threads)?;
     let reproduced = serde_json::json!({
         "reference_kernels": rel_l2(&fake_quant, &reference)?,
         "integer_kernels": rel_l2(&fake_quant, &integer)?,
@@ -62,8 +63,7 @@ pub fn train(quantized: &ModelProto, float: &ModelProto, weight_bits: u32, frame
 }
 
 /// `model`'s graph outputs on ORT at `level`, each with the frames stacked (as the worker's).
-fn run_ort(model: &ModelProto, level: GraphOptimizationLevel, feeds: &[Vec<(String, Tensor)>]) -> Result<Vec<(String, Vec<f32>)>> {
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+fn run_ort(model: &ModelProto, level: GraphOptimizationLevel, feeds: &[Vec<(String, Tensor)>], threads: usize) -> Result<Vec<(String, Vec<f32>)>> {
     let mut rt = OrtRuntime::with_options(model, level, threads)?;
     let mut stacked: Vec<(String, Vec<f32>)> = Vec::new();
     for feed in feeds {
