@@ -285,6 +285,10 @@ pub enum Command {
         frames: usize,
         #[arg(long, default_value_t = 0.99)]
         min_cosine: f64,
+        /// Float model to compare the simulator with instead of DIR/model.onnx (e.g. the model
+        /// before rknn-qat trained its weights); same inputs and outputs.
+        #[arg(long)]
+        reference: Option<PathBuf>,
         #[arg(long)]
         json: bool,
     },
@@ -470,8 +474,8 @@ pub fn run(cli: Cli) -> Result<u8> {
                 return Ok(EXIT_GATE_FAILED);
             }
         }
-        Command::RknnConvert { dir, data, frames, min_cosine, json } => {
-            let r = crate::targets::rknn_convert::convert(&crate::targets::rknn_convert::ConvertRequest { dir, data, frames, min_cosine })?;
+        Command::RknnConvert { dir, data, frames, min_cosine, reference, json } => {
+            let r = crate::targets::rknn_convert::convert(&crate::targets::rknn_convert::ConvertRequest { dir, data, frames, min_cosine, reference })?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);
             } else {

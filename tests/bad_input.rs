@@ -273,3 +273,26 @@ fn bad_qat_settings_are_refused_before_calibration() {
         assert!(!out.join("model.onnx").exists(), "{setting}: nothing written");
     }
 }
+
+/// rknn-qat refuses, in one line and before the toolkit or torch run: bad settings, and a
+/// model that is not from rknn-legalize.
+#[test]
+fn bad_rknn_qat_settings_and_placement_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let qat = std::fs::read_to_string(repo().join("passes/detect-rknn-qat.yaml")).unwrap();
+    let misplaced = qat.replace("  - rknn-legalize\n", "");
+    for (recipe_text, needle) in [
+        (qat.replace("rknn-qat: {minutes: 5}", "rknn-qat: {minutes: 0}"), "minutes and lr must be positive"),
+        (qat.replace("rknn-qat: {minutes: 5}", "rknn-qat: {frames: 4}"), "4 frames for batches of 8"),
+        (qat.replace("rknn-qat: {minutes: 5}", "rknn-qat: {steps: 3}"), "unknown field `steps`"),
+        (misplaced, "needs a model from rknn-legalize"),
+    ] {
+        let recipe = dir.path().join("qat.yaml");
+        std::fs::write(&recipe, &recipe_text).unwrap();
+        let out = dir.path().join("out");
+        let r = cli(&["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap()]);
+        assert_eq!(r.code, 2, "{needle}: {}", r.stderr);
+        assert!(r.stderr.contains(needle) && r.stderr.trim().lines().count() == 1, "{needle}: {}", r.stderr);
+        assert!(!out.join("model.onnx").exists(), "{needle}: nothing written");
+    }
+}

@@ -17,6 +17,7 @@ pub mod recover;
 pub mod resize_to_deconv;
 pub mod rknn_hybrid;
 pub mod rknn_legalize;
+pub mod rknn_qat;
 pub mod strip_recon;
 pub mod to_fp16;
 
@@ -24,7 +25,7 @@ use crate::pipeline::{Pass, PassSpec};
 use anyhow::{anyhow, bail, Result};
 
 /// Every pass this build knows, by the name recipes use.
-pub const KNOWN: &[&str] = &["promote-constants", "strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "drop-classes", "drop-strides", "crop-roi", "prune", "recover", "quantize", "fp16", "rknn-legalize", "rknn-hybrid"];
+pub const KNOWN: &[&str] = &["promote-constants", "strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "drop-classes", "drop-strides", "crop-roi", "prune", "recover", "quantize", "fp16", "rknn-legalize", "rknn-hybrid", "rknn-qat"];
 
 pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
     Ok(match spec.name.as_str() {
@@ -46,6 +47,7 @@ pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
         "quantize" => Box::new(quantize::Quantize { options: options(spec)? }),
         "rknn-legalize" => Box::new(rknn_legalize::RknnLegalize { options: options(spec)? }),
         "rknn-hybrid" => Box::new(rknn_hybrid::RknnHybrid { options: options(spec)? }),
+        "rknn-qat" => Box::new(rknn_qat::RknnQat { options: options(spec)? }),
         other => bail!("unknown pass '{other}' in the pipeline (known passes: {})", KNOWN.join(", ")),
     })
 }

@@ -70,6 +70,46 @@ pub fn head_specs(model: &ModelProto) -> Result<Vec<serde_json::Value>> {
     Ok(specs)
 }
 
+/// The head values of a model from rknn-legalize (per-stride boxes and scores), for the
+/// worker: each output's logits (a Sigmoid's input), YOLOv8's box distributions as they are.
+/// `student_value` names the student's copy of a value where it differs (a quantized model's
+/// dequantized value).
+pub fn split_head_specs(model: &ModelProto, student_value: &std::collections::BTreeMap<String, String>) -> Result<Vec<serde_json::Value>> {
+    use crate::detect::split_head::HeadLayout;
+    let layout = HeadLayout::from_model(model)?;
+    let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+    let logits = |out: &str| -> String {
+        match g.node.iter().find(|n| n.output.iter().any(|o| o == out)) {
+            Some(n) if n.op_type == "Sigmoid" => n.input[0].clone(),
+            _ => out.to_string(),
+        }
+    };
+    let spec = |value: String, rest: serde_json::Value| {
+        let mut s = serde_json::json!({"value": value, "student_value": student_value.get(&value)});
+        if let (Some(a), Some(b)) = (s.as_object_mut(), rest.as_object()) {
+            a.extend(b.clone());
+        }
+        s
+    };
+    let nc = layout.classes;
+    let mut specs = Vec::new();
+    for l in &layout.levels {
+        match layout.kind {
+            HeadKind::Yolov5Anchor => {
+                let na = l.anchors.len();
+                specs.push(spec(logits(&l.boxes), serde_json::json!({"kind": "v5box", "anchors": na})));
+                specs.push(spec(logits(&l.scores), serde_json::json!({"kind": "v5scores", "anchors": na, "outputs": 1 + nc})));
+            }
+            HeadKind::Yolov8Dfl => {
+                specs.push(spec(l.boxes.clone(), serde_json::json!({"kind": "v8box", "reg_max": layout.reg_max})));
+                specs.push(spec(logits(&l.scores), serde_json::json!({"kind": "v8cls"})));
+            }
+            ref other => bail!("a {other:?} head cannot be distilled"),
+        }
+    }
+    Ok(specs)
+}
+
 /// The head convolutions' inputs, matched channel by channel: a pruned value's kept
 /// positions index the teacher's channels (a dense signal where the logits are sparse).
 fn feature_specs(model: &ModelProto, kept: &HashMap<String, Vec<usize>>) -> Result<Vec<serde_json::Value>> {

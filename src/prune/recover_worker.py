@@ -156,6 +156,12 @@ def run_node(n, v):
     if op == "ReduceMean":
         axes = ints(v[1]) if len(v) > 1 and v[1] is not None else a.get("axes")
         return [v[0].mean(dim=tuple(axes), keepdim=bool(a.get("keepdims", 1)))]
+    if op == "ReduceSum":
+        # Axes are an input from opset 13 (an attribute before); none given: every axis.
+        axes = ints(v[1]) if len(v) > 1 and v[1] is not None else a.get("axes")
+        if not axes:
+            return [v[0].clone() if a.get("noop_with_empty_axes", 0) else v[0].sum().reshape([1] * v[0].dim() if a.get("keepdims", 1) else [])]
+        return [v[0].sum(dim=tuple(axes), keepdim=bool(a.get("keepdims", 1)))]
     if op == "Reshape":
         return [reshape(v[0], ints(v[1]))]
     if op == "Transpose":
@@ -226,7 +232,7 @@ class Graph(torch.nn.Module):
     (int8 weights) or int32's range (biases) wherever it is read, so the forward is the
     emitted model's and the parameter keeps what a step moved below one integer."""
 
-    def __init__(self, model, trainable=True, weight_qmax=127, fuse=True):
+    def __init__(self, model, trainable=True, weight_qmax=127, fuse=True, pin_extremes=False, weight_qmin=None):
         super().__init__()
         g = model.graph
         self.nodes = list(g.node)
@@ -238,6 +244,7 @@ class Graph(torch.nn.Module):
         self.key = {}
         self.consts = {}
         self.bounds = {}  # parameter key -> (lo, hi) of an integer initializer
+        self.pinned = {}  # parameter key -> mask of integers that must not move
         for t in g.initializer:
             arr = numpy_helper.to_array(t)
             if trainable and t.name in conv_params and arr.dtype == np.float32:
@@ -248,7 +255,12 @@ class Graph(torch.nn.Module):
                 k = f"p{len(self.params)}"
                 self.params[k] = torch.nn.Parameter(torch.from_numpy(arr.astype(np.float32)))
                 self.key[t.name] = k
-                self.bounds[k] = (-weight_qmax, weight_qmax) if arr.dtype == np.int8 else (-INT32_IN_F32, INT32_IN_F32)
+                lo = -weight_qmax if weight_qmin is None else weight_qmin
+                self.bounds[k] = (lo, weight_qmax) if arr.dtype == np.int8 else (-INT32_IN_F32, INT32_IN_F32)
+                if pin_extremes and arr.dtype == np.int8:
+                    # Weights at the range's ends stay there: a toolchain that requantizes the
+                    # dequantized weights per channel over their min..max then finds the same grid.
+                    self.pinned[k] = (torch.from_numpy((arr == lo) | (arr == weight_qmax)), self.params[k].detach().clone())
             else:
                 self.consts[t.name] = torch.from_numpy(arr.copy())
         for n in self.nodes:
@@ -258,7 +270,14 @@ class Graph(torch.nn.Module):
 
     def to_device(self, dev):
         self.consts = {k: v.to(dev) for k, v in self.consts.items()}
+        self.pinned = {k: (m.to(dev), v.to(dev)) for k, (m, v) in self.pinned.items()}
         return self.to(dev)
+
+    def restore_pinned(self):
+        """Puts pinned integers back where they started (after an optimizer step)."""
+        with torch.no_grad():
+            for k, (mask, start) in self.pinned.items():
+                self.params[k].copy_(torch.where(mask, start, self.params[k]))
 
     def value(self, name, env):
         if name == "":
@@ -325,8 +344,16 @@ def head_loss(s, t, spec):
         obj = torch.sigmoid(t[:, :, 4:5])
         box = (obj * (torch.sigmoid(s[:, :, :4]) - torch.sigmoid(t[:, :, :4])) ** 2).sum() / obj.sum().clamp(min=1) / 4
         return box * 20.0 + soft_bce(s[:, :, 4:], t[:, :, 4:])
-    if kind == "v8cls":
+    if kind in ("v8cls", "v5scores"):
         return soft_bce(s, t)
+    if kind == "v5box":
+        # A split YOLOv5 head's box rows: matched where the teacher sees an object.
+        na = spec["anchors"]
+        b, _, h, w = s.shape
+        s, t = s.view(b, na, 4, h, w), t.view(b, na, 4, h, w)
+        obj = spec.get("objectness")
+        obj = torch.ones_like(t[:, :, :1]) if obj is None else obj
+        return (obj * (torch.sigmoid(s) - torch.sigmoid(t)) ** 2).sum() / obj.sum().clamp(min=1) / 4 * 20.0
     if kind == "v8box":
         r = spec["reg_max"]
         b, _, h, w = s.shape
@@ -367,6 +394,12 @@ def total_loss(ss, ts, heads, features=()):
         if spec["kind"] == "v8box":
             cls = [tt for tt, sp in zip(ts, heads) if sp["kind"] == "v8cls" and tt.shape[2:] == t.shape[2:]]
             spec = dict(spec, weight=torch.sigmoid(cls[0]).amax(1, keepdim=True) if cls else None)
+        if spec["kind"] == "v5box":
+            sc = [(tt, sp) for tt, sp in zip(ts, heads) if sp["kind"] == "v5scores" and tt.shape[2:] == t.shape[2:]]
+            if sc:
+                tt, sp = sc[0]
+                per = tt.view(tt.shape[0], sp["anchors"], sp["outputs"], *tt.shape[2:])
+                spec = dict(spec, objectness=torch.sigmoid(per[:, :, :1]))
         total = total + head_loss(s, t, spec)
     return total
 
@@ -432,9 +465,12 @@ def setup(cfg):
 def train(cfg):
     dev, gen = setup(cfg)
     student_model = onnx.load(cfg["student"])
-    student = Graph(student_model, weight_qmax=cfg.get("weight_qmax", 127)).to_device(dev)
+    student = Graph(student_model, weight_qmax=cfg.get("weight_qmax", 127), pin_extremes=cfg.get("pin_extremes", False),
+                    weight_qmin=cfg.get("weight_qmin")).to_device(dev)
     heads, features = cfg["heads"], cfg.get("features", [])
     names = [h["value"] for h in heads] + [f["value"] for f in features]
+    # The student's copy of a value where it differs (a quantized value's dequantized copy).
+    student_names = [h.get("student_value") or h["value"] for h in heads] + [f["value"] for f in features]
     teacher = ort_teacher(cfg["teacher"], names) if dev.type == "cpu" else Graph(onnx.load(cfg["teacher"]), trainable=False).to_device(dev).eval()
     window = cfg.get("window")
     frames = torch.from_numpy(np.load(cfg["frames"])).to(dev)
@@ -451,7 +487,7 @@ def train(cfg):
             tot = 0.0
             for i in range(0, len(held), batch):
                 x = held[i:i + batch]
-                tot += float(total_loss(student(student_in(x), names), teacher(x, names), heads, features)) * len(x)
+                tot += float(total_loss(student(student_in(x), student_names), teacher(x, names), heads, features)) * len(x)
             return tot / len(held)
 
     opt = torch.optim.Adam(student.param_groups(cfg["lr"], cfg.get("relative_lr", False)))
@@ -471,13 +507,14 @@ def train(cfg):
             x = augment(frames[perm[i * batch:(i + 1) * batch].to(dev)], gen)
             with torch.no_grad():
                 t = teacher(x, names)
-            loss = total_loss(student(student_in(x), names), t, heads, features)
+            loss = total_loss(student(student_in(x), student_names), t, heads, features)
             # Cosine decay over the steps the budget allows (re-estimated as steps are timed).
             for g in opt.param_groups:
                 g["lr"] = g["base_lr"] * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / steps)))
             opt.zero_grad()
             loss.backward()
             opt.step()
+            student.restore_pinned()
             step, seen = step + 1, seen + len(x)
             tot, cnt = tot + float(loss), cnt + 1
             if step == 5:

@@ -144,13 +144,21 @@ pub struct OutputError {
 /// With `scene`, the candidate is scene-specialized: it sees the crop of each frame and its
 /// outputs are compared with the reference's gathered into its layout.
 pub fn output_errors(reference: &ModelProto, candidate: &ModelProto, feeds: &Feeds, threads: usize, scene: Option<&SceneView>) -> Result<Vec<OutputError>> {
+    output_errors_at(reference, candidate, feeds, threads, scene, GraphOptimizationLevel::Level3)
+}
+
+/// [`output_errors`] with the candidate run at `level`: `Disable` keeps a QDQ graph on ONNX
+/// Runtime's reference kernels (float arithmetic on dequantized values, what an integer
+/// accelerator with exact int32 sums computes), where `Level3` fuses it into the CPU's
+/// integer kernels (which saturate with 8-bit weights on x86 without VNNI).
+pub fn output_errors_at(reference: &ModelProto, candidate: &ModelProto, feeds: &Feeds, threads: usize, scene: Option<&SceneView>, level: GraphOptimizationLevel) -> Result<Vec<OutputError>> {
     let g = reference.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
     let graph = Graph::build(g)?;
     let inf = infer(&graph);
     let outputs: Vec<String> = g.output.iter().map(|o| o.name.clone()).collect();
     let head = head::detect(&graph, &inf, &outputs);
     let mut r = OrtRuntime::with_options(reference, GraphOptimizationLevel::Level3, threads)?;
-    let mut c = OrtRuntime::with_options(candidate, GraphOptimizationLevel::Level3, threads)?;
+    let mut c = OrtRuntime::with_options(candidate, level, threads)?;
     let mut sums: BTreeMap<(usize, Option<&'static str>), ErrorSums> = BTreeMap::new();
     for feed in feeds {
         let (ro, co) = match scene {

@@ -1,6 +1,7 @@
 //! Post-training INT8 quantization: ranges from calibration frames, QDQ emission, error
 //! attribution per layer, bias correction, learned rounding and mixed precision. The `quantize` pass drives it.
 
+pub mod at_points;
 pub mod attribution;
 pub mod collect;
 pub mod histogram;

@@ -35,21 +35,44 @@ pub struct Trained {
     pub reproduced: serde_json::Value,
 }
 
-/// Trains the integers of `quantized` (emitted from `float` with `weight_bits`-bit weights) to
-/// reproduce `float`'s head logits on `frames`; `held_out` (feeds of one image input) judge it,
-/// run on ONNX Runtime with `threads`.
-pub fn train(quantized: &ModelProto, float: &ModelProto, weight_bits: u32, frames: &[Tensor], held_out: &[Vec<(String, Tensor)>], o: &recover::Options, threads: usize) -> Result<Trained> {
-    let mut heads = recover::head_specs(float)?;
+/// What the worker trains: the head values it matches (`recover::head_specs`, or
+/// `recover::split_head_specs` for a model from rknn-legalize), the weights' range, and
+/// whether weights at the range's ends stay there (a toolchain that requantizes the
+/// dequantized weights per channel by their peak then finds the same grid).
+pub struct Student {
+    pub heads: Vec<serde_json::Value>,
+    /// The int8 weights' range: (-q, q) for symmetric `bits`-bit weights, (-128, 127) for
+    /// asymmetric ones.
+    pub weight_range: (i32, i32),
+    pub pin_extremes: bool,
+}
+
+impl Student {
+    /// Symmetric `bits`-bit weights.
+    pub fn symmetric(heads: Vec<serde_json::Value>, bits: u32) -> Student {
+        let q = (1i32 << (bits - 1)) - 1;
+        Student { heads, weight_range: (-q, q), pin_extremes: false }
+    }
+}
+
+/// Adds the YOLOv8 box edges' own term to its box heads.
+pub fn weigh_edges(heads: &mut [serde_json::Value]) {
     for h in heads.iter_mut().filter(|h| h["kind"] == "v8box") {
         h["edge_weight"] = serde_json::json!(EDGE_WEIGHT);
     }
+}
+
+/// Trains the integers of `quantized` (emitted from `float`) to reproduce `float`'s head
+/// logits on `frames`; `held_out` (feeds of one image input) judge it, run on ONNX Runtime
+/// with `threads`.
+pub fn train(quantized: &ModelProto, float: &ModelProto, student: Student, frames: &[Tensor], held_out: &[Vec<(String, Tensor)>], o: &recover::Options, threads: usize) -> Result<Trained> {
     let held: Vec<Tensor> = held_out.iter().map(|f| f[0].1.clone()).collect();
-    let qmax = (1i32 << (weight_bits - 1)) - 1;
     // Steps relative to each tensor's largest magnitude: an int8 weight, an int32 bias (in
     // units thousands of times smaller) and a float layer's weight all move alike.
-    let extra = serde_json::json!({"weight_qmax": qmax, "relative_lr": true});
+    let (qmin, qmax) = student.weight_range;
+    let extra = serde_json::json!({"weight_qmin": qmin, "weight_qmax": qmax, "relative_lr": true, "pin_extremes": student.pin_extremes});
     let mut model = quantized.clone();
-    let (outcome, fake_quant) = recover::train(&mut model, float, frames, &held, o, Job { heads, features: Vec::new(), extra, outputs: true, label: "qat" })?;
+    let (outcome, fake_quant) = recover::train(&mut model, float, frames, &held, o, Job { heads: student.heads, features: Vec::new(), extra, outputs: true, label: "qat" })?;
     let names: Vec<String> = model.graph.as_ref().map(|g| g.output.iter().map(|o| o.name.clone()).collect()).unwrap_or_default();
     let fake_quant: Vec<(String, Vec<f32>)> = names.into_iter().zip(fake_quant).map(|(n, t)| Ok((n, t.as_f32().ok_or_else(|| anyhow!("fake-quantized outputs are f32"))?.to_vec()))).collect::<Result<_>>()?;
     let reference = run_ort(&model, GraphOptimizationLevel::Disable, held_out, threads)?;

@@ -150,7 +150,7 @@ fn dequantize(g: &mut GraphProto, q: &str, p: &QParams, ty: ActivationType) -> S
     dq
 }
 
-fn dequantize_per_channel(g: &mut GraphProto, q: &str, scales: &[f64], zero_points: TensorData, axis: i64) -> String {
+pub(crate) fn dequantize_per_channel(g: &mut GraphProto, q: &str, scales: &[f64], zero_points: TensorData, axis: i64) -> String {
     let s = fresh_name(g, &format!("{q}_scale"));
     set_initializer(g, from_tensor(&s, &Tensor::f32(vec![scales.len()], scales.iter().map(|&x| x as f32).collect())));
     let z = fresh_name(g, &format!("{q}_zero_point"));
@@ -161,7 +161,7 @@ fn dequantize_per_channel(g: &mut GraphProto, q: &str, scales: &[f64], zero_poin
     dq
 }
 
-fn scalar_params(g: &mut GraphProto, v: &str, p: &QParams, ty: ActivationType) -> (String, String) {
+pub(crate) fn scalar_params(g: &mut GraphProto, v: &str, p: &QParams, ty: ActivationType) -> (String, String) {
     let scale = fresh_name(g, &format!("{v}_scale"));
     set_initializer(g, from_tensor(&scale, &Tensor::f32(vec![], vec![p.scale as f32])));
     let zp = fresh_name(g, &format!("{v}_zero_point"));

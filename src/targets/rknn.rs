@@ -95,6 +95,11 @@ pub struct RknnQuantization {
     pub dataset: String,
     pub dataset_frames: usize,
     pub dataset_source: String,
+    /// Quantization points the model was trained on (`rknn-qat`), by the toolkit's tensor
+    /// names: `rknn-convert` writes them into the toolkit's quantization config in place of
+    /// its own calibration. Empty: the toolkit calibrates every tensor itself.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub trained_points: std::collections::BTreeMap<String, super::rknn_points::Point>,
 }
 
 pub fn write(dir: &Path, model: &ModelProto, calib: Option<&Path>) -> Result<RknnConfig> {
@@ -135,6 +140,7 @@ pub fn write(dir: &Path, model: &ModelProto, calib: Option<&Path>) -> Result<Rkn
             dataset: "dataset.txt".into(),
             dataset_frames: frames.frames.len(),
             dataset_source: frames.source,
+            trained_points: super::rknn_points::stored(model)?,
         },
         outputs: layout.output_names(),
         head_layout: layout,
