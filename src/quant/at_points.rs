@@ -133,10 +133,10 @@ fn splittable(g: &GraphProto, has_point: &dyn Fn(&str) -> bool) -> Vec<(usize, u
     pairs
 }
 
-/// Rewrites each splittable Concat → Conv into per-input convolutions `<conv>_part<i>` (the
-/// weights' input channels cut at the Concat's offsets, the bias on the last, as the
-/// toolkit's simulator dumps show) writing
-/// `<input>_conv`, summed by Adds into the convolution's output.
+/// Rewrites each splittable Concat → Conv into per-input convolutions `<conv>_part<i>`
+/// writing `<input>_conv` (the weights' input channels cut at the Concat's offsets; the bias
+/// on the last part, as the toolkit's simulator dumps show), summed by Adds into the
+/// convolution's output.
 fn split_concat_convs(g: &mut GraphProto, points: &BTreeMap<String, (f64, i32)>) -> Result<()> {
     let pairs = splittable(g, &|v| points.contains_key(v));
     if pairs.is_empty() {

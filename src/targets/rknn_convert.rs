@@ -95,6 +95,10 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
     let model = crate::onnx::load(&dir.join(&config.model))?.model;
     let reference_path = req.reference.clone().unwrap_or_else(|| dir.join(&config.model));
     let reference_model = crate::onnx::load(&reference_path)?.model;
+    let reference_outputs: Vec<&str> = reference_model.graph.iter().flat_map(|g| &g.output).map(|o| o.name.as_str()).collect();
+    if let Some(missing) = config.outputs.iter().find(|o| !reference_outputs.contains(&o.as_str())) {
+        bail!("{} has no output '{missing}': the reference must be the same rknn-legalize model (e.g. from passes/detect-rknn.yaml)", reference_path.display());
+    }
     if req.frames == 0 {
         bail!("--frames must be at least 1");
     }
