@@ -75,6 +75,7 @@ fn rknn_target_writes_config_dataset_and_frames() {
     assert_eq!(config["target_platform"], "rk3588");
     assert_eq!(config["outputs"].as_array().unwrap().len(), 9, "boxes, scores, score_sum × 3 strides");
     assert_eq!(config["input"]["std_values"][0][0], 255.0);
+    assert_eq!(config["input"]["range"], serde_json::json!([0.0, 1.0]), "every 8-bit pixel on its own int8 step");
     let lines: Vec<String> = std::fs::read_to_string(out.join("dataset.txt")).unwrap().lines().map(String::from).collect();
     assert_eq!(lines.len(), config["quantization"]["dataset_frames"].as_u64().unwrap() as usize);
     let frame = pdi_compile::optics::npy::read(&out.join(&lines[0])).unwrap();
@@ -119,6 +120,7 @@ fn rknn_convert_builds_and_its_simulator_agrees_with_ort() {
     assert!(!out.join("check0_base_optimize.onnx").exists(), "the toolkit's debug dumps are not left in the artifact");
     assert_eq!(report["cpu_layers"].as_array().unwrap().len(), 0);
     assert!(report["npu_layers"].as_u64().unwrap() > 50);
+    assert!(report["quantization"].as_str().unwrap().ends_with("the input over [0, 1]"), "{}", report["quantization"]);
     for a in report["outputs"].as_array().unwrap().iter().chain(report["groups"].as_array().unwrap()) {
         assert!(a["cosine"].as_f64().unwrap() >= 0.99, "{a}");
     }

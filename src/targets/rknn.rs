@@ -71,6 +71,11 @@ pub struct RknnInput {
     /// Per channel; the NPU computes (pixel − mean) / std before the first layer.
     pub mean_values: Vec<Vec<f32>>,
     pub std_values: Vec<Vec<f32>>,
+    /// The range the NPU quantizes the normalized input over (its `<input>_int8` tensor).
+    /// [0, 1] puts every 8-bit pixel on a step of its own (q = pixel − 128); absent, the
+    /// toolkit calibrates it, [0, 0.84] on the simulated frames, and clips brighter pixels.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub range: Option<[f64; 2]>,
 }
 
 #[derive(Serialize, Deserialize, Clone, Debug)]
@@ -128,7 +133,7 @@ pub fn write(dir: &Path, model: &ModelProto, calib: Option<&Path>) -> Result<Rkn
     let config = RknnConfig {
         target_platform: "rk3588".into(),
         model: "model.onnx".into(),
-        input: RknnInput { name, shape, mean_values: vec![vec![0.0; shape[1]]], std_values: vec![vec![PIXEL_SCALE; shape[1]]] },
+        input: RknnInput { name, shape, mean_values: vec![vec![0.0; shape[1]]], std_values: vec![vec![PIXEL_SCALE; shape[1]]], range: Some([0.0, 1.0]) },
         quantization: RknnQuantization {
             do_quantization: true,
             quantized_dtype: "w8a8".into(),

@@ -218,11 +218,15 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
         toolkit: result["toolkit"].as_str().unwrap_or("?").to_string(),
         seconds: t.elapsed().as_secs_f64(),
         validation: set.source,
-        quantization: match trained.is_empty() {
-            true => format!("the toolkit's own calibration ({} frames)", config.quantization.dataset_frames),
-            false => {
-                let absent = result["trained_points_absent"].as_array().map_or(0, Vec::len);
-                format!("rknn-qat's trained points: {} written into the toolkit's quantization config, {absent} absent from it", result["trained_points_set"])
+        quantization: {
+            let absent = result["ranges_absent"].as_array().map_or(0, Vec::len);
+            let input = match config.input.range {
+                Some([lo, hi]) => format!("; the input over [{lo}, {hi}]"),
+                None => String::new(),
+            };
+            match trained.is_empty() {
+                true => format!("the toolkit's own calibration ({} frames){input}", config.quantization.dataset_frames),
+                false => format!("rknn-qat's trained points ({}){input}: {} ranges written into the toolkit's quantization config, {absent} absent from it", trained.len(), result["ranges_set"]),
             }
         },
         reference: reference_path.display().to_string(),

@@ -43,7 +43,12 @@ def main(job_path):
     ), "config")
     ok(r.load_onnx(model=model, outputs=cfg["outputs"]), "load_onnx")
     spans = [[l["input"], l["output"]] for l in q.get("fp16_layers", [])]
-    trained = q.get("trained_points") or {}
+    trained = dict(q.get("trained_points") or {})
+    trained_count = len(trained)
+    if cfg["input"].get("range"):
+        # The input's int8 range (the toolkit names the quantized input `<input>_int8`).
+        lo, hi = cfg["input"]["range"]
+        trained[cfg["input"]["name"] + "_int8"] = {"min": lo, "max": hi}
     written = {"set": 0, "absent": []}
     if q["do_quantization"] and (spans or trained):
         # Hybrid quantization: step 1 writes <model>.model/.data/.quantization.cfg into the
@@ -68,7 +73,8 @@ def main(job_path):
             np.save(f"{job['out_dir']}/{i:04d}_{name}.npy", np.ascontiguousarray(o, dtype=np.float32))
     r.release()
     with open(job["result"], "w") as f:
-        json.dump({"toolkit": version("rknn-toolkit2"), "trained_points_set": written["set"], "trained_points_absent": written["absent"]}, f)
+        json.dump({"toolkit": version("rknn-toolkit2"), "ranges_set": written["set"], "ranges_absent": written["absent"],
+                   "trained_points": trained_count}, f)
 
 
 def write_points(path, trained):
