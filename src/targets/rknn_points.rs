@@ -2,10 +2,11 @@
 //! types and parameters, as its hybrid-quantization step 1 writes them (`.quantization.cfg`).
 //!
 //! The toolkit's plan is not an ONNX QDQ plan: it fuses Conv+ReLU (the convolution's output
-//! takes the ReLU's range), runs SiLU as one op (no sigmoid output is quantized), quantizes
+//! takes the ReLU's range) and Conv+SiLU / Conv+Sigmoid (the activation reads the int32 sum,
+//! [`fused_away`]), splits some Concat → Conv pairs per input (`quant::at_points`), quantizes
 //! the image and every graph output to int8 and keeps the PSF gates' products in int16. So a
 //! model trained for the NPU (`rknn-qat`) trains on these points, and `rknn-convert` writes
-//! their parameters back into the toolkit's configuration before it builds.
+//! their ranges back into the toolkit's configuration before it builds.
 
 use super::rknn::{pixels, PIXEL_SCALE};
 use crate::onnx::proto::{GraphProto, ModelProto, NodeProto, StringStringEntryProto};
