@@ -34,7 +34,7 @@ use crate::quant::at_points;
 use crate::quant::attribution::{output_errors_at, worst_rel_l2, OutputError};
 use ort::session::builder::GraphOptimizationLevel;
 use crate::quant::qat::{self, Student};
-use crate::targets::rknn::{pixels, DATASET_FRAMES, PIXEL_SCALE};
+use crate::targets::rknn::{npu_input, DATASET_FRAMES};
 use crate::targets::rknn_convert::OUTPUT_STEP;
 use crate::targets::rknn_points::{self, Point};
 use crate::tensor::Tensor;
@@ -92,7 +92,7 @@ impl Pass for RknnQat {
         let (input, shape) = crate::ir::shapes::static_image_input(g, "rknn-qat")?;
         let npu_frames = |n: usize, seed: u64| -> Result<Vec<Tensor>> {
             let set = calibration_frames(cx.calib.as_deref(), n, shape[2], shape[3], seed)?;
-            Ok(set.frames.iter().map(|f| replicate(&Tensor::f32(f.image.shape.clone(), pixels(f.image.as_f32().unwrap_or(&[])).into_iter().map(|p| p / PIXEL_SCALE).collect()), shape[1])).collect())
+            Ok(set.frames.iter().map(|f| replicate(&Tensor::f32(f.image.shape.clone(), npu_input(f.image.as_f32().unwrap_or(&[]))), shape[1])).collect())
         };
         // The frames `--target rknn` writes for the toolkit (same count, same seed).
         let calibration = npu_frames(DATASET_FRAMES, 0)?;
@@ -103,8 +103,8 @@ impl Pass for RknnQat {
         let is_int8 = |v: &str| toolkit.get(v).is_some_and(|p| p.int8().is_some());
         // Values the emitted model has: the graph's, and the partial sums of the convolutions
         // the toolkit splits per concatenated input.
-        let sums = at_points::split_sums(g, is_int8);
-        let values: std::collections::HashSet<&str> = g.node.iter().flat_map(|n| n.output.iter()).chain(std::iter::once(&input)).chain(&sums).map(String::as_str).collect();
+        let splits = at_points::splits(g, is_int8);
+        let values: std::collections::HashSet<&str> = g.node.iter().flat_map(|n| n.output.iter()).chain(std::iter::once(&input)).chain(&splits.sums).map(String::as_str).collect();
         // Trained points by graph value, and the toolkit's name for each. The toolkit keeps
         // the graph's input and outputs as float32 entries and quantizes them under
         // `<name>_int8`; the image gets the exact pixel grid instead of its calibrated range.
@@ -119,7 +119,7 @@ impl Pass for RknnQat {
                 (Some(v), Some(_)) => {
                     trained.insert(v.to_string(), (name.clone(), p.clone()));
                 }
-                (None, Some(_)) if values.contains(name.as_str()) => match rknn_points::fused_away(g, name, is_int8) {
+                (None, Some(_)) if values.contains(name.as_str()) => match rknn_points::fused_away(g, name, &splits.outputs) {
                     Some(why) => {
                         left.insert(name.clone(), why.to_string());
                     }

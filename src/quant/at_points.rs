@@ -9,7 +9,7 @@
 //! stays float.
 
 use super::params::{quantize_bias, ActivationType, QParams};
-use super::qdq::{dequantize_per_channel, node, scalar_params};
+use super::qdq::{add_qdq, dequantize_per_channel, node};
 use crate::onnx::edit::{fresh_name, set_initializer, sort_topologically};
 use crate::onnx::proto::{GraphProto, ModelProto};
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
@@ -49,25 +49,26 @@ pub fn emit(model: &ModelProto, points: &BTreeMap<String, (f64, i32)>) -> Result
     let mut dequantized = BTreeMap::new();
     for (v, _) in points {
         let p = params(v).expect("a point");
-        let (scale, zp) = scalar_params(&mut g, v, &p, ActivationType::I8);
-        let q = fresh_name(&g, &format!("{v}_q"));
-        let (from, dq) = if outputs.contains(v) {
+        let dq = if outputs.contains(v) {
             // The producer writes a fresh value; the pair ends in the output's own name, which
             // its readers keep reading.
             let pre = fresh_name(&g, &format!("{v}_float"));
             for n in g.node.iter_mut() {
                 n.output.iter_mut().filter(|x| *x == v).for_each(|x| *x = pre.clone());
             }
-            (pre, v.clone())
+            add_qdq(&mut g, &pre, &p, ActivationType::I8);
+            g.node.last_mut().expect("the DequantizeLinear just added").output[0] = v.clone();
+            v.clone()
         } else {
-            let dq = fresh_name(&g, &format!("{v}_dq"));
-            for n in g.node.iter_mut() {
+            // Every reader so far reads the dequantized copy (the new QuantizeLinear, pushed
+            // after them, reads the value itself).
+            let readers = g.node.len();
+            let dq = add_qdq(&mut g, v, &p, ActivationType::I8);
+            for n in g.node[..readers].iter_mut() {
                 n.input.iter_mut().filter(|x| *x == v).for_each(|x| *x = dq.clone());
             }
-            (v.clone(), dq)
+            dq
         };
-        g.node.push(node("QuantizeLinear", &format!("{v}_quantize"), vec![from, scale.clone(), zp.clone()], vec![q.clone()], vec![]));
-        g.node.push(node("DequantizeLinear", &format!("{v}_dequantize"), vec![q, scale, zp], vec![dq.clone()], vec![]));
         dequantized.insert(v.clone(), dq);
     }
     let initial: BTreeMap<String, Tensor> = g.initializer.iter().map(|t| Ok((t.name.clone(), to_tensor(t)?))).collect::<Result<_>>()?;
@@ -101,17 +102,23 @@ pub fn emit(model: &ModelProto, points: &BTreeMap<String, (f64, i32)>) -> Result
     Ok((out, dequantized))
 }
 
-/// The partial sums' names of the Concat → Conv pairs that RKNN-Toolkit2 computes as one
-/// convolution per concatenated input, summed: it lists a point `<input>_conv` for each
-/// input, and rounds each partial sum there (its simulator's dumps show an Add where the
-/// convolution was). `has_point` says whether the toolkit lists a name.
-pub fn split_sums(g: &GraphProto, has_point: impl Fn(&str) -> bool) -> Vec<String> {
-    splittable(g, &has_point).into_iter().flat_map(|(c, _)| g.node[c].input.iter().map(|x| format!("{x}_conv")).collect::<Vec<_>>()).collect()
+/// The Concat → Conv pairs that RKNN-Toolkit2 computes as one convolution per concatenated
+/// input, summed: it lists a point `<input>_conv` for each input, and rounds each partial sum
+/// there (its simulator's dumps show an Add where the convolution was).
+pub struct Splits {
+    /// The partial sums' names (points of their own).
+    pub sums: Vec<String>,
+    /// The split convolutions' outputs (each now an Add's).
+    pub outputs: Vec<String>,
 }
 
-/// The outputs of the convolutions [`split_sums`] splits (each now an Add's).
-pub fn split_outputs(g: &GraphProto, has_point: impl Fn(&str) -> bool) -> Vec<String> {
-    splittable(g, &has_point).into_iter().map(|(_, k)| g.node[k].output[0].clone()).collect()
+/// The splits of `g`; `has_point` says whether the toolkit lists a name.
+pub fn splits(g: &GraphProto, has_point: impl Fn(&str) -> bool) -> Splits {
+    let pairs = splittable(g, &has_point);
+    Splits {
+        sums: pairs.iter().flat_map(|&(c, _)| g.node[c].input.iter().map(|x| format!("{x}_conv"))).collect(),
+        outputs: pairs.iter().map(|&(_, k)| g.node[k].output[0].clone()).collect(),
+    }
 }
 
 /// (Concat, Conv) node pairs to split: the Concat's only reader is a plain convolution of it,

@@ -161,7 +161,7 @@ pub(crate) fn dequantize_per_channel(g: &mut GraphProto, q: &str, scales: &[f64]
     dq
 }
 
-pub(crate) fn scalar_params(g: &mut GraphProto, v: &str, p: &QParams, ty: ActivationType) -> (String, String) {
+fn scalar_params(g: &mut GraphProto, v: &str, p: &QParams, ty: ActivationType) -> (String, String) {
     let scale = fresh_name(g, &format!("{v}_scale"));
     set_initializer(g, from_tensor(&scale, &Tensor::f32(vec![], vec![p.scale as f32])));
     let zp = fresh_name(g, &format!("{v}_zero_point"));

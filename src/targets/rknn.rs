@@ -160,6 +160,11 @@ fn default_hybrid_cosine() -> f64 {
     0.98
 }
 
+/// A [0, 1] frame as the model sees it on the NPU: its 8-bit pixels divided by 255.
+pub fn npu_input(v: &[f32]) -> Vec<f32> {
+    pixels(v).into_iter().map(|p| p / PIXEL_SCALE).collect()
+}
+
 /// A [0, 1] frame as the 8-bit pixel values the NPU is fed (rounded: the camera delivers
 /// integers, and the reference run gets exactly these values divided by 255).
 pub fn pixels(v: &[f32]) -> Vec<f32> {

@@ -9,7 +9,7 @@
 //! layers the toolkit placed on the CPU (none is the only acceptable answer for a model
 //! made of NPU ops), and how many detections the two agree on after post-processing.
 
-use super::rknn::{pixels, RknnConfig, PIXEL_SCALE};
+use super::rknn::{npu_input, pixels, RknnConfig};
 use crate::analysis::head::HeadKind;
 use crate::calib_frames::calibration_frames;
 use crate::detect::split_head::{detect, HeadLayout};
@@ -156,9 +156,9 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
             // its fused activations never round are not its arithmetic.
             let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
             let mut points = super::rknn_points::by_value(trained);
-            let sums = crate::quant::at_points::split_sums(g, |v| points.contains_key(v));
-            let values: std::collections::HashSet<&str> = g.node.iter().flat_map(|n| &n.output).chain(g.input.iter().map(|i| &i.name)).chain(&sums).map(String::as_str).collect();
-            let fused: Vec<String> = points.keys().filter(|v| super::rknn_points::fused_away(g, v, |x| points.contains_key(x)).is_some()).cloned().collect();
+            let splits = crate::quant::at_points::splits(g, |v| points.contains_key(v));
+            let values: std::collections::HashSet<&str> = g.node.iter().flat_map(|n| &n.output).chain(g.input.iter().map(|i| &i.name)).chain(&splits.sums).map(String::as_str).collect();
+            let fused: Vec<String> = points.keys().filter(|v| super::rknn_points::fused_away(g, v, &splits.outputs).is_some()).cloned().collect();
             points.retain(|v, _| values.contains(v.as_str()) && !fused.contains(v));
             let (qdq, _) = crate::quant::at_points::emit(&model, &points)?;
             let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
@@ -171,7 +171,7 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
     let mut per_group: Vec<(&'static str, ErrorSums)> = Vec::new();
     let (mut n_ort, mut n_rknn, mut matched) = (0, 0, 0);
     for (i, f) in set.frames.iter().enumerate() {
-        let x: Vec<f32> = pixels(f.image.as_f32().unwrap_or(&[])).into_iter().map(|p| p / PIXEL_SCALE).collect();
+        let x = npu_input(f.image.as_f32().unwrap_or(&[]));
         let feed = [(config.input.name.clone(), Tensor::f32(f.image.shape.clone(), x))];
         let reference: HashMap<String, Tensor> = ort.run(&feed)?.into_iter().collect();
         if let Some((rt, sums)) = trained_qdq.as_mut() {

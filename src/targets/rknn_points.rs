@@ -92,14 +92,11 @@ pub fn toolkit_points(model: &ModelProto, frames: &[Tensor], outputs: &[String])
 /// dump of such an output equals the float convolution within 1e-6, and quantizing it there
 /// misses 21% of the SiLU's outputs by one or two steps). Conv+ReLU fuses too, but rounding
 /// the output over the ReLU's range [0, max] is the same arithmetic, so that point stays.
-/// A convolution the toolkit splits per concatenated input (`at_points::split_sums`, by
-/// `has_point`) ends in an Add, whose output it rounds.
-pub fn fused_away(g: &GraphProto, v: &str, has_point: impl Fn(&str) -> bool) -> Option<&'static str> {
+/// A convolution the toolkit splits per concatenated input (`split_outputs`, from
+/// `at_points::splits`) ends in an Add, whose output it rounds.
+pub fn fused_away(g: &GraphProto, v: &str, split_outputs: &[String]) -> Option<&'static str> {
     let producer = g.node.iter().find(|n| n.output.iter().any(|o| o == v))?;
-    if producer.op_type != "Conv" || g.output.iter().any(|o| o.name == v) {
-        return None;
-    }
-    if crate::quant::at_points::split_outputs(g, &has_point).iter().any(|o| o == v) {
+    if producer.op_type != "Conv" || g.output.iter().any(|o| o.name == v) || split_outputs.iter().any(|o| o == v) {
         return None;
     }
     let readers: Vec<&NodeProto> = g.node.iter().filter(|n| n.input.iter().any(|i| i == v)).collect();
