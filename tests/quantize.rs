@@ -292,3 +292,29 @@ fn quantization_aware_recovery_trains_the_emitted_integers() {
     assert!(changed > 0 && changed < weights, "{changed} of {weights} int8 weights moved");
     scales_are_finite(&b.join("model.onnx"));
 }
+
+/// Calibration runs frames in parallel and absorbs them in order: any number of workers
+/// gives the histograms and channel means of one session taking the frames one by one.
+#[test]
+fn range_collection_is_the_same_on_any_number_of_workers() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("f32");
+    compile(V5, "passes/detect-f32.yaml", &out, &[]);
+    let m = load(&out.join("model.onnx"));
+    let g = m.graph.as_ref().unwrap();
+    let convs: Vec<&pdi_compile::onnx::proto::NodeProto> = g.node.iter().filter(|n| n.op_type == "Conv").collect();
+    let values: Vec<String> = convs.iter().map(|n| n.output[0].clone()).collect();
+    let graph = pdi_compile::ir::Graph::build(g).unwrap();
+    let inf = pdi_compile::ir::infer(&graph);
+    let per_channel: std::collections::HashMap<String, usize> = convs.iter().filter_map(|n| Some((n.input[0].clone(), inf.shape(&n.input[0])?[1]))).collect();
+    // Seven frames: the workers' shares are uneven.
+    let feeds: Vec<_> = (0..7).map(|s| inputs_for(&m, s)).collect();
+    let one = pdi_compile::quant::collect::statistics(&m, &values, &per_channel, &feeds, 1).unwrap();
+    let three = pdi_compile::quant::collect::statistics(&m, &values, &per_channel, &feeds, 3).unwrap();
+    assert!(!one.histograms.is_empty() && !one.channel_means.is_empty());
+    for (v, h) in &one.histograms {
+        let o = &three.histograms[v];
+        assert_eq!((&h.counts, h.radius, h.min, h.max, h.count), (&o.counts, o.radius, o.min, o.max, o.count), "{v}");
+    }
+    assert_eq!(one.channel_means, three.channel_means);
+}

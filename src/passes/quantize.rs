@@ -26,7 +26,7 @@ use crate::quant::plan::{plan, Plan};
 use crate::quant::qdq::{emit, EmitOptions};
 use crate::quant::range::{choose, Method};
 use anyhow::{anyhow, bail, Result};
-use std::collections::{HashMap, HashSet};
+use std::collections::{BTreeSet, HashMap, HashSet};
 
 #[derive(serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -189,9 +189,10 @@ impl Pass for Quantize {
         let keep: HashSet<String> = o.keep_float.iter().cloned().collect();
         let base = plan(&graph, &keep);
         let values: Vec<String> = base.quantized_values(&graph).into_iter().collect();
-        // A sigmoid's output range follows from its input's (it is monotonic), so those large
+        // A sigmoid's output range follows from its input's (it is monotonic), and a
+        // data-movement output uses its input's parameters (Plan::root), so those large
         // tensors need not be read back from the runtime.
-        let mut collected: Vec<String> = values.iter().map(|v| sigmoid_input(&graph, v).unwrap_or_else(|| v.clone())).collect();
+        let mut collected: Vec<String> = values.iter().map(|v| base.root(v)).map(|v| sigmoid_input(&graph, v).unwrap_or_else(|| v.to_string())).collect();
         collected.sort();
         collected.dedup();
         let conv_inputs: HashMap<String, usize> = base
@@ -203,7 +204,7 @@ impl Pass for Quantize {
             .collect();
         let conv_inputs = if o.bias_correction { conv_inputs } else { HashMap::new() };
         let stats = statistics(&float, &collected, &conv_inputs, &feeds, threads)?;
-        let (params, mut warnings) = activation_params(&graph, &values, &stats, o);
+        let (params, mut warnings) = activation_params(&graph, &base, &values, &stats, o);
         let mut shifts = if o.bias_correction { bias_shifts(&graph, &base, &stats.channel_means, o.weight_bits)? } else { HashMap::new() };
         clock.lap("ranges");
         let learned = match o.rounding {
@@ -337,9 +338,10 @@ fn quantization_aware(float: &ModelProto, quantized: ModelProto, feeds: &[Vec<(S
     Ok(if kept { (t.model, report, after) } else { (quantized, report, before) })
 }
 
-/// Frames timed plainly to put the range collection's cost in proportion (the same frames,
-/// threads and session options; a few suffice for a mean).
-const PLAIN_TIMED_FRAMES: usize = 8;
+/// Frames timed plainly to put the range collection's cost in proportion (the first of the
+/// same frames, threads and session options; run to run, a plain 640x480 frame varies by
+/// ~1%, so 16 give the mean well within the noise of the ratio).
+const PLAIN_TIMED_FRAMES: usize = 16;
 
 /// What range collection cost per frame against the float model's plain inference.
 fn collection_cost(float: &ModelProto, feeds: &[Vec<(String, crate::tensor::Tensor)>], stats: &Statistics, threads: usize) -> Result<serde_json::Value> {
@@ -370,10 +372,13 @@ fn mix_conditions(feeds: &mut [Vec<(String, crate::tensor::Tensor)>], conditions
 
 /// Activation parameters of every quantized value from its statistics, and warnings about
 /// degenerate or non-finite data.
-fn activation_params(graph: &Graph, values: &[String], stats: &Statistics, o: &Options) -> (HashMap<String, QParams>, Vec<String>) {
+fn activation_params(graph: &Graph, plan: &Plan, values: &[String], stats: &Statistics, o: &Options) -> (HashMap<String, QParams>, Vec<String>) {
     let mut warnings = Vec::new();
     let mut params = HashMap::new();
-    for v in values {
+    // Roots first: a data-movement output takes its root's parameters, in this plan and in
+    // any mixed-precision plan that leaves the data movement in float.
+    let roots: BTreeSet<&str> = values.iter().map(|v| plan.root(v)).collect();
+    for &v in &roots {
         let (lo, hi, h) = match sigmoid_input(graph, v) {
             Some(input) => {
                 let h = &stats.histograms[&input];
@@ -392,7 +397,11 @@ fn activation_params(graph: &Graph, values: &[String], stats: &Statistics, o: &O
         if degenerate_range(lo, hi) {
             warnings.push(format!("'{v}' is constant zero on the calibration frames; it gets a fixed scale {:.6}", QParams::activation(lo, hi, o.activations).scale));
         }
-        params.insert(v.clone(), QParams::activation(lo, hi, o.activations));
+        params.insert(v.to_string(), QParams::activation(lo, hi, o.activations));
+    }
+    for v in values {
+        let p = params[plan.root(v)];
+        params.insert(v.clone(), p);
     }
     (params, warnings)
 }

@@ -33,95 +33,165 @@ impl Default for Histogram {
 /// strided sample, which keeps a 640x480 frame's activations cheap to calibrate on.
 pub const MAX_BINNED_PER_CALL: usize = 1 << 16;
 
+/// Values summarized and sampled together: 128 KiB of f32, well inside a core's L2.
+const CACHE_CHUNK: usize = 1 << 15;
+
+/// What one tensor adds to a histogram, computed without it: the pass over the values, which
+/// calibration runs for several frames at once. Only [`Histogram::admit`] must take frames in
+/// order (the bins depend on the order in which the range grows), and it is cheap.
+#[derive(Clone, Debug)]
+pub struct Summary {
+    /// Extremes of the finite values (infinite when there are none).
+    lo: f32,
+    hi: f32,
+    /// Sum of the finite values, when `everything` is false.
+    sum: f64,
+    finite: u64,
+    total: u64,
+    /// The values to bin, in order: every finite value of a small tensor, or a strided
+    /// sample of a large one (its extremes are binned beside it).
+    sample: Vec<f32>,
+    everything: bool,
+}
+
+impl Summary {
+    /// The summary of `values`, and the sum of each of `planes` equal planes (NCHW, batch 1;
+    /// non-finite where a plane holds NaN or Inf, as a plain sum gives it), from one pass.
+    /// A large tensor goes in cache-sized chunks: each is summarized and its share of the
+    /// sample copied out while it is still in cache (sampling in a second pass re-read the
+    /// tensor from memory, one cache miss per sampled value).
+    pub fn of(values: &[f32], planes: usize) -> (Summary, Vec<f64>) {
+        let planes = planes.max(1);
+        let plane = (values.len() / planes).max(1);
+        let total = values.len() as u64;
+        if values.len() <= MAX_BINNED_PER_CALL {
+            let sums = values.chunks(plane).take(planes).map(|chunk| chunk.iter().map(|&v| v as f64).sum::<f64>()).collect();
+            let sample: Vec<f32> = values.iter().copied().filter(|v| v.is_finite()).collect();
+            let (lo, hi) = sample.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+            return (Summary { lo, hi, sum: 0.0, finite: sample.len() as u64, total, sample, everything: true }, sums);
+        }
+        let stride = values.len().div_ceil(MAX_BINNED_PER_CALL);
+        let mut sums = vec![0.0f64; planes];
+        let mut s = Summary { lo: f32::INFINITY, hi: f32::NEG_INFINITY, sum: 0.0, finite: 0, total, sample: Vec::with_capacity(values.len().div_ceil(stride)), everything: false };
+        for (k, plane_values) in values.chunks(plane).enumerate() {
+            for (j, chunk) in plane_values.chunks(CACHE_CHUNK).enumerate() {
+                let (l, h, sum, n) = fast_stats(chunk).map_or_else(|| slow_stats(chunk), |(l, h, s)| (l, h, s, chunk.len() as u64));
+                sums[k.min(planes - 1)] += if n as usize == chunk.len() { sum } else { chunk.iter().map(|&v| v as f64).sum() };
+                (s.lo, s.hi, s.sum, s.finite) = (s.lo.min(l), s.hi.max(h), s.sum + sum, s.finite + n);
+                let start = k * plane + j * CACHE_CHUNK;
+                let mut i = start.div_ceil(stride) * stride - start;
+                while i < chunk.len() {
+                    if chunk[i].is_finite() {
+                        s.sample.push(chunk[i]);
+                    }
+                    i += stride;
+                }
+            }
+        }
+        (s, sums)
+    }
+
+    /// Counts of the summary's values in the bins of a histogram of range `radius`.
+    pub fn bin_at(&self, radius: f64) -> Vec<u64> {
+        let mut counts = vec![0u64; BINS];
+        let width = 2.0 * radius / BINS as f64;
+        let extremes: &[f32] = if self.everything { &[] } else { &[self.lo, self.hi] };
+        for &v in self.sample.iter().chain(extremes).filter(|v| v.is_finite()) {
+            if width > 0.0 {
+                let b = ((v as f64 + radius) / width) as usize;
+                counts[b.min(BINS - 1)] += 1;
+            } else {
+                // All zeros so far: they sit in the bin just above zero.
+                counts[BINS / 2] += 1;
+            }
+        }
+        counts
+    }
+}
+
+/// Bins of a histogram of twice the range: bin b goes to BINS/4 + b/2.
+fn merged(counts: &[u64]) -> Vec<u64> {
+    let mut m = vec![0u64; BINS];
+    for (b, &c) in counts.iter().enumerate() {
+        m[BINS / 4 + b / 2] += c;
+    }
+    m
+}
+
 impl Histogram {
     /// Adds every value to the statistics and a strided sample of them (plus the extremes)
     /// to the bins.
     pub fn add(&mut self, values: &[f32]) {
-        if values.len() <= MAX_BINNED_PER_CALL {
-            return self.add_all(values);
-        }
-        let summary = fast_stats(values).map(|(lo, hi, sum)| (lo, hi, sum, values.len() as u64)).unwrap_or_else(|| slow_stats(values));
-        self.add_summarized(values, summary);
+        self.absorb(&Summary::of(values, 1).0);
     }
 
     /// [`Histogram::add`] for a tensor of `planes` equal planes (NCHW, batch 1), also returning
     /// each plane's mean, from the same pass over the values (calibration reads every
     /// convolution input for both its range and, for bias correction, its channel means).
     pub fn add_planes(&mut self, values: &[f32], planes: usize) -> Vec<f64> {
-        let planes = planes.max(1);
-        let plane = (values.len() / planes).max(1);
-        let mut means = vec![0.0; planes];
-        if values.len() <= MAX_BINNED_PER_CALL {
-            for (m, chunk) in means.iter_mut().zip(values.chunks(plane)) {
-                *m = chunk.iter().map(|&v| v as f64).sum::<f64>() / plane as f64;
-            }
-            self.add_all(values);
-            return means;
-        }
-        let per_plane: Vec<Option<(f32, f32, f64)>> = values.chunks(plane).map(fast_stats).collect();
-        for (m, (chunk, s)) in means.iter_mut().zip(values.chunks(plane).zip(&per_plane)) {
-            // A plane holding NaN or Inf gets a non-finite mean, as a plain sum would give it.
-            *m = s.map_or_else(|| chunk.iter().map(|&v| v as f64).sum::<f64>(), |(_, _, sum)| sum) / plane as f64;
-        }
-        let summary = if per_plane.iter().all(Option::is_some) {
-            per_plane.iter().flatten().fold((f32::INFINITY, f32::NEG_INFINITY, 0.0f64, values.len() as u64), |(lo, hi, sum, n), &(l, h, s)| (lo.min(l), hi.max(h), sum + s, n))
-        } else {
-            slow_stats(values)
-        };
-        self.add_summarized(values, summary);
-        means
+        let (summary, sums) = Summary::of(values, planes);
+        self.absorb(&summary);
+        let plane = (values.len() / planes.max(1)).max(1) as f64;
+        sums.into_iter().map(|s| s / plane).collect()
     }
 
-    /// Exact (min, max, sum, finite count) of `values` go to the statistics; a strided sample
-    /// (plus the extremes) to the bins. The sample's peak is the extremes', so no pass over it
-    /// is needed before binning.
-    fn add_summarized(&mut self, values: &[f32], (lo, hi, sum, finite): (f32, f32, f64, u64)) {
-        let extremes = [lo, hi].into_iter().filter(|v| v.is_finite());
+    /// Adds a tensor's summary: the range grows to its peak, then its values are binned.
+    pub fn absorb(&mut self, s: &Summary) {
+        let radius = self.admit(s);
+        self.add_binned(radius, &s.bin_at(radius));
+    }
+
+    /// The order-dependent half of [`Histogram::absorb`], cheap: the range grows to the
+    /// summary's peak and the exact statistics take it in. Returns the range its values are
+    /// to be binned at ([`Summary::bin_at`]), which may happen later and elsewhere: bins
+    /// merge linearly as the range doubles, so counts made at this range and merged up to a
+    /// later one in [`Histogram::add_binned`] are those of binning them now.
+    pub fn admit(&mut self, s: &Summary) -> f64 {
+        let extremes = [s.lo, s.hi].into_iter().filter(|v| v.is_finite());
         let peak = extremes.clone().fold(0.0f64, |m, v| m.max(v.abs() as f64));
         if peak > self.radius {
             self.grow_to(peak);
         }
-        let width = self.bin_width();
-        let stride = values.len().div_ceil(MAX_BINNED_PER_CALL);
-        for v in values.iter().step_by(stride).copied().chain(extremes.clone()).filter(|v| v.is_finite()) {
-            self.bin(v as f64, width);
+        if s.everything {
+            for &v in &s.sample {
+                self.sum += v as f64;
+            }
+        } else {
+            self.sum += s.sum;
         }
         for v in extremes {
             self.min = self.min.min(v as f64);
             self.max = self.max.max(v as f64);
         }
-        self.count += finite;
-        self.sum += sum;
-        self.non_finite += values.len() as u64 - finite;
+        self.count += s.finite;
+        self.non_finite += s.total - s.finite;
+        self.radius
     }
 
-    fn bin(&mut self, v: f64, width: f64) {
-        if width > 0.0 {
-            let b = ((v + self.radius) / width) as usize;
-            self.counts[b.min(BINS - 1)] += 1;
-        } else {
-            // All zeros so far: they sit in the bin just above zero.
-            self.counts[BINS / 2] += 1;
+    /// Adds counts made at `radius` (an earlier or the current range of this histogram),
+    /// merged pairwise up to the current range as growing would have merged them.
+    pub fn add_binned(&mut self, radius: f64, counts: &[u64]) {
+        let mut counts = counts.to_vec();
+        // A range of 0 held only zeros, which stay in the bin above zero at any range.
+        let mut r = radius;
+        while r > 0.0 && r < self.radius {
+            counts = merged(&counts);
+            r *= 2.0;
+        }
+        for (c, n) in self.counts.iter_mut().zip(counts) {
+            *c += n;
         }
     }
 
-    fn add_all(&mut self, values: &[f32]) {
-        let peak = values.iter().filter(|v| v.is_finite()).fold(0.0f64, |m, &v| m.max(v.abs() as f64));
-        if peak > self.radius {
-            self.grow_to(peak);
+    fn grow_to(&mut self, peak: f64) {
+        if self.radius == 0.0 {
+            // First nonzero value: any zeros already counted stay in the bin above zero.
+            self.radius = peak;
+            return;
         }
-        let width = self.bin_width();
-        for &v in values {
-            if !v.is_finite() {
-                self.non_finite += 1;
-                continue;
-            }
-            let v = v as f64;
-            self.min = self.min.min(v);
-            self.max = self.max.max(v);
-            self.count += 1;
-            self.sum += v;
-            self.bin(v, width);
+        while self.radius < peak {
+            self.counts = merged(&self.counts);
+            self.radius *= 2.0;
         }
     }
 
@@ -147,22 +217,6 @@ impl Histogram {
     pub fn is_empty(&self) -> bool {
         self.count == 0
     }
-
-    fn grow_to(&mut self, peak: f64) {
-        if self.radius == 0.0 {
-            // First nonzero value: any zeros already counted stay in the bin above zero.
-            self.radius = peak;
-            return;
-        }
-        while self.radius < peak {
-            let mut merged = vec![0u64; BINS];
-            for (b, &c) in self.counts.iter().enumerate() {
-                merged[BINS / 4 + b / 2] += c;
-            }
-            self.counts = merged;
-            self.radius *= 2.0;
-        }
-    }
 }
 
 /// (min, max, sum, count) over the finite values, one by one: the path for tensors holding
@@ -181,9 +235,12 @@ fn fast_stats(values: &[f32]) -> Option<(f32, f32, f64)> {
         let mut chunks = block.chunks_exact(LANES);
         for c in &mut chunks {
             for k in 0..LANES {
-                lo[k] = lo[k].min(c[k]);
-                hi[k] = hi[k].max(c[k]);
-                part[k] += c[k];
+                // Plain comparisons compile to one minps/maxps each; `f32::min` adds NaN
+                // handling that made this loop a quarter slower, and a NaN shows in the sum.
+                let v = c[k];
+                lo[k] = if v < lo[k] { v } else { lo[k] };
+                hi[k] = if v > hi[k] { v } else { hi[k] };
+                part[k] += v;
             }
         }
         for &v in chunks.remainder() {
@@ -194,7 +251,7 @@ fn fast_stats(values: &[f32]) -> Option<(f32, f32, f64)> {
         sum += part.iter().map(|&p| p as f64).sum::<f64>();
     }
     let (lo, hi) = (lo.iter().copied().fold(f32::INFINITY, f32::min), hi.iter().copied().fold(f32::NEG_INFINITY, f32::max));
-    // f32::min/max skip NaN, so a NaN shows only in the sum.
+    // Comparisons with NaN are false, so a NaN shows only in the sum.
     (lo.is_finite() && hi.is_finite() && sum.is_finite()).then_some((lo, hi, sum))
 }
 
@@ -223,6 +280,24 @@ mod tests {
         with_nan[5] = f32::NAN;
         let means = Histogram::default().add_planes(&with_nan, 4);
         assert!(means[0].is_nan() && means[1] == 1.0, "{means:?}");
+    }
+
+    /// Calibration's split: frames admitted in order, their bins made later and added in
+    /// another order, give the histogram of adding them one by one.
+    #[test]
+    fn bins_made_after_admission_match_adding_in_order() {
+        let frames: Vec<Vec<f32>> = (0..6).map(|f| (0..100_000).map(|i| (((i * 7919 + f * 31) % 1013) as f32 / 97.0 - 2.0) * (1 << f) as f32 * 0.7).collect()).collect();
+        let mut sequential = Histogram::default();
+        frames.iter().for_each(|f| sequential.add(f));
+        let mut split = Histogram::default();
+        let summaries: Vec<Summary> = frames.iter().map(|f| Summary::of(f, 4).0).collect();
+        let radii: Vec<f64> = summaries.iter().map(|s| split.admit(s)).collect();
+        for (s, r) in summaries.iter().zip(&radii).rev() {
+            split.add_binned(*r, &s.bin_at(*r));
+        }
+        assert!(radii.windows(2).any(|w| w[1] > w[0]), "the range grows over the frames");
+        assert_eq!(split.counts, sequential.counts);
+        assert_eq!((split.radius, split.min, split.max, split.count), (sequential.radius, sequential.min, sequential.max, sequential.count));
     }
 
     #[test]

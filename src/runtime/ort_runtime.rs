@@ -18,23 +18,15 @@ impl OrtRuntime {
     }
 
     pub fn with_options(model: &ModelProto, level: GraphOptimizationLevel, threads: usize) -> Result<OrtRuntime> {
-        Self::build(model, level, threads, true)
+        Self::build(model, level, threads)
     }
 
-    /// A session whose idle threads sleep instead of spinning: for sessions that share the
-    /// cores with other work (two calibration sessions taking turns, say), where spinning
-    /// threads would steal the cores the other one needs.
-    pub fn sharing_cores(model: &ModelProto, threads: usize) -> Result<OrtRuntime> {
-        Self::build(model, GraphOptimizationLevel::Level3, threads, false)
-    }
-
-    fn build(model: &ModelProto, level: GraphOptimizationLevel, threads: usize, spinning: bool) -> Result<OrtRuntime> {
+    fn build(model: &ModelProto, level: GraphOptimizationLevel, threads: usize) -> Result<OrtRuntime> {
         let env = super::ort_lib::environment()?;
         let bytes = model.encode_to_vec();
         let session = Session::builder(env)
             .and_then(|b| b.with_optimization_level(level).map_err(Into::into))
             .and_then(|b| b.with_intra_threads(threads).map_err(Into::into))
-            .and_then(|b| b.with_intra_op_spinning(spinning).map_err(Into::into))
             .and_then(|mut b| b.commit_from_memory(&bytes))
             .map_err(|e| anyhow!("ONNX Runtime rejected the model: {e}"))?;
         Ok(OrtRuntime { session })
