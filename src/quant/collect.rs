@@ -141,7 +141,6 @@ impl Accumulator {
 /// `feeds`, each frame run once. Graph inputs among them are read from the feeds. A value
 /// wanting both is read once: its plane sums come from the histogram's own pass.
 ///
-///
 /// Frames run in parallel, each on a session of its own whose worker also summarizes it; the
 /// summaries are admitted in frame order, so the histograms are those of one session taking
 /// the frames one by one (tested). On 2 cores at 640x480 (full-size v5) one session on both
@@ -198,8 +197,11 @@ pub fn statistics(model: &ModelProto, values: &[String], per_channel: &HashMap<S
         let handles: Vec<_> = (0..workers)
             .map(|k| {
                 let (turn, contribute, absorb, observed, exposed) = (&turn, &contribute, &absorb, &observed, &exposed);
-                scope.spawn(move || -> Result<()> {
-                    let mut rt = if exposed.is_empty() { None } else { Some(OrtRuntime::with_options(observed, GraphOptimizationLevel::Level3, session_threads)?) };
+                let work = move || -> Result<()> {
+                    let session = if exposed.is_empty() { Ok(None) } else { OrtRuntime::with_options(observed, GraphOptimizationLevel::Level3, session_threads).map(Some) };
+                    // A worker without a session stops the others too: they would wait for
+                    // its frames' turns.
+                    let mut rt = session.inspect_err(|_| turn.abort())?;
                     for i in (k..feeds.len()).step_by(workers) {
                         let done = match rt.as_mut() {
                             Some(rt) => rt.visit_f32(&feeds[i], |outputs| contribute(i, outputs)),
@@ -212,6 +214,13 @@ pub fn statistics(model: &ModelProto, values: &[String], per_channel: &HashMap<S
                         }
                     }
                     Ok(())
+                };
+                scope.spawn(move || {
+                    // A worker that panics stops the others too, as one that fails does.
+                    std::panic::catch_unwind(std::panic::AssertUnwindSafe(work)).unwrap_or_else(|_| {
+                        turn.abort();
+                        Err(anyhow::anyhow!("a calibration worker panicked"))
+                    })
                 })
             })
             .collect();
