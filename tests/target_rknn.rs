@@ -134,14 +134,20 @@ fn rknn_convert_builds_and_its_simulator_agrees_with_ort() {
     assert!(r.stdout.contains("FAIL") && r.stdout.contains("cosine"), "{}", r.stdout);
 }
 
+/// `passes/detect-rknn.yaml` with `pass` appended, written into `dir`.
+fn detect_rknn_then(dir: &std::path::Path, pass: &str) -> std::path::PathBuf {
+    let recipe = dir.join("detect-rknn-then.yaml");
+    let base = std::fs::read_to_string(repo().join("passes/detect-rknn.yaml")).unwrap();
+    std::fs::write(&recipe, format!("{base}  - {pass}\n")).unwrap();
+    recipe
+}
+
 /// rknn-hybrid's FP16 layers travel through rknn.yaml to the toolkit's hybrid quantization:
 /// the build log shows the float16 spans, and the simulator still agrees with ORT.
 #[test]
 fn rknn_hybrid_layers_reach_the_toolkit() {
     let dir = tempfile::tempdir().unwrap();
-    let recipe = dir.path().join("hybrid.yaml");
-    let base = std::fs::read_to_string(repo().join("passes/detect-rknn.yaml")).unwrap();
-    std::fs::write(&recipe, format!("{base}  - rknn-hybrid: {{error_budget: 0.02, max_layers: 4}}\n")).unwrap();
+    let recipe = detect_rknn_then(dir.path(), "rknn-hybrid: {error_budget: 0.02, max_layers: 4}");
     let out = dir.path().join("rknn");
     let r = compile("models/trained/pdinet_v5_tiny_trained.onnx", recipe.to_str().unwrap(), &out, &["--target", "rknn"]);
     assert_eq!(r.code, 0, "{}", r.stderr);
@@ -174,9 +180,7 @@ fn rknn_qat_trains_on_the_toolkits_plan_and_reaches_the_npu() {
     let plain = dir.path().join("plain");
     let r = compile("models/trained/pdinet_v5_tiny_trained.onnx", "passes/detect-rknn.yaml", &plain, &["--target", "rknn"]);
     assert_eq!(r.code, 0, "{}", r.stderr);
-    let recipe = dir.path().join("qat.yaml");
-    let base = std::fs::read_to_string(repo().join("passes/detect-rknn.yaml")).unwrap();
-    std::fs::write(&recipe, format!("{base}  - rknn-qat: {{minutes: 2, epochs: 4, lr: 0.0005, frames: 32}}\n")).unwrap();
+    let recipe = detect_rknn_then(dir.path(), "rknn-qat: {minutes: 2, epochs: 4, lr: 0.0005, frames: 32}");
     let out = dir.path().join("qat");
     let r = compile("models/trained/pdinet_v5_tiny_trained.onnx", recipe.to_str().unwrap(), &out, &["--target", "rknn"]);
     assert_eq!(r.code, 0, "{}", r.stderr);

@@ -94,10 +94,8 @@ impl Wanted {
     fn contribution(&self, v: &[f32]) -> Contribution {
         match (self.histogram, self.channels) {
             (true, channels) => {
-                let planes = channels.unwrap_or(1);
-                let (summary, sums) = Summary::of(v, planes);
-                let plane = (v.len() / planes).max(1) as f64;
-                Contribution { summary: Some(summary), plane_means: channels.map(|_| sums.into_iter().map(|s| s / plane).collect()) }
+                let (summary, means) = Summary::of(v, channels.unwrap_or(1));
+                Contribution { summary: Some(summary), plane_means: channels.map(|_| means) }
             }
             (false, Some(c)) => {
                 let plane = (v.len() / c).max(1);

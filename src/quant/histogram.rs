@@ -55,8 +55,10 @@ pub struct Summary {
 }
 
 impl Summary {
-    /// The summary of `values`, and the sum of each of `planes` equal planes (NCHW, batch 1;
-    /// non-finite where a plane holds NaN or Inf, as a plain sum gives it), from one pass.
+    /// The summary of `values`, and the mean of each of `planes` equal planes (NCHW, batch 1;
+    /// non-finite where a plane holds NaN or Inf, as a plain sum gives it), from one pass
+    /// (calibration reads every convolution input for both its range and, for bias
+    /// correction, its channel means).
     /// A large tensor goes in cache-sized chunks: each is summarized and its share of the
     /// sample copied out while it is still in cache (sampling in a second pass re-read the
     /// tensor from memory, one cache miss per sampled value).
@@ -65,10 +67,10 @@ impl Summary {
         let plane = (values.len() / planes).max(1);
         let total = values.len() as u64;
         if values.len() <= MAX_BINNED_PER_CALL {
-            let sums = values.chunks(plane).take(planes).map(|chunk| chunk.iter().map(|&v| v as f64).sum::<f64>()).collect();
+            let means = values.chunks(plane).take(planes).map(|chunk| chunk.iter().map(|&v| v as f64).sum::<f64>() / plane as f64).collect();
             let sample: Vec<f32> = values.iter().copied().filter(|v| v.is_finite()).collect();
             let (lo, hi) = sample.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &v| (lo.min(v), hi.max(v)));
-            return (Summary { lo, hi, sum: 0.0, finite: sample.len() as u64, total, sample, everything: true }, sums);
+            return (Summary { lo, hi, sum: 0.0, finite: sample.len() as u64, total, sample, everything: true }, means);
         }
         let stride = values.len().div_ceil(MAX_BINNED_PER_CALL);
         let mut sums = vec![0.0f64; planes];
@@ -88,7 +90,7 @@ impl Summary {
                 }
             }
         }
-        (s, sums)
+        (s, sums.into_iter().map(|sum| sum / plane as f64).collect())
     }
 
     /// Counts of the summary's values in the bins of a histogram of range `radius`.
@@ -123,16 +125,6 @@ impl Histogram {
     /// to the bins.
     pub fn add(&mut self, values: &[f32]) {
         self.absorb(&Summary::of(values, 1).0);
-    }
-
-    /// [`Histogram::add`] for a tensor of `planes` equal planes (NCHW, batch 1), also returning
-    /// each plane's mean, from the same pass over the values (calibration reads every
-    /// convolution input for both its range and, for bias correction, its channel means).
-    pub fn add_planes(&mut self, values: &[f32], planes: usize) -> Vec<f64> {
-        let (summary, sums) = Summary::of(values, planes);
-        self.absorb(&summary);
-        let plane = (values.len() / planes.max(1)).max(1) as f64;
-        sums.into_iter().map(|s| s / plane).collect()
     }
 
     /// Adds a tensor's summary: the range grows to its peak, then its values are binned.
@@ -266,7 +258,8 @@ mod tests {
             let values: Vec<f32> = (0..len).map(|i| ((i * 7919) % 1013) as f32 / 97.0 - 3.0 + (i / (len / 4)) as f32).collect();
             let (mut a, mut b) = (Histogram::default(), Histogram::default());
             a.add(&values);
-            let means = b.add_planes(&values, 4);
+            let (summary, means) = Summary::of(&values, 4);
+            b.absorb(&summary);
             assert_eq!(a.counts, b.counts, "len {len}");
             assert_eq!((a.min, a.max, a.count, a.non_finite), (b.min, b.max, b.count, b.non_finite));
             assert!((a.sum - b.sum).abs() <= 1e-6 * a.sum.abs().max(1.0), "{} vs {}", a.sum, b.sum);
@@ -278,7 +271,7 @@ mod tests {
         }
         let mut with_nan = vec![1.0f32; 4 * 70_000];
         with_nan[5] = f32::NAN;
-        let means = Histogram::default().add_planes(&with_nan, 4);
+        let means = Summary::of(&with_nan, 4).1;
         assert!(means[0].is_nan() && means[1] == 1.0, "{means:?}");
     }
 

@@ -18,10 +18,6 @@ impl OrtRuntime {
     }
 
     pub fn with_options(model: &ModelProto, level: GraphOptimizationLevel, threads: usize) -> Result<OrtRuntime> {
-        Self::build(model, level, threads)
-    }
-
-    fn build(model: &ModelProto, level: GraphOptimizationLevel, threads: usize) -> Result<OrtRuntime> {
         let env = super::ort_lib::environment()?;
         let bytes = model.encode_to_vec();
         let session = Session::builder(env)
