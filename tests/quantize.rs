@@ -50,6 +50,41 @@ fn scales_are_finite(path: &Path) {
     assert!(seen > 10, "the model has its Q/DQ scales ({seen})");
 }
 
+/// The encoder's Relus are gone from the INT8 model (`fused` of them), and putting each back
+/// in front of the QuantizeLinear that took its place changes no bit of any output on ONNX
+/// Runtime's reference kernels: the quantizer clamps at zero itself.
+fn relus_fused_exactly(fused: u64, path: &Path) {
+    use pdi_compile::onnx::proto::NodeProto;
+    use pdi_compile::runtime::ort_runtime::OrtRuntime;
+    use pdi_compile::runtime::Runtime;
+    let fused_model = load(path);
+    let g = fused_model.graph.as_ref().unwrap();
+    assert!(!g.node.iter().any(|n| n.op_type == "Relu"), "every Relu after a quantized convolution is fused");
+    let convs: std::collections::HashSet<&str> = g.node.iter().filter(|n| n.op_type == "Conv").map(|n| n.output[0].as_str()).collect();
+    let mut with_relus = fused_model.clone();
+    let g2 = with_relus.graph.as_mut().unwrap();
+    let mut restored = 0;
+    for k in 0..g2.node.len() {
+        let x = g2.node[k].input[0].clone();
+        // Encoder convolutions (named so in every PDI-Net) are the ones followed by a Relu.
+        if g2.node[k].op_type == "QuantizeLinear" && convs.contains(x.as_str()) && x.starts_with("/enc") {
+            let y = format!("{x}_relu");
+            g2.node[k].input[0] = y.clone();
+            g2.node.push(NodeProto { op_type: "Relu".into(), name: y.clone(), input: vec![x], output: vec![y], ..Default::default() });
+            restored += 1;
+        }
+    }
+    assert!(restored > 0 && restored as u64 <= fused, "{restored} restored of {fused} fused");
+    pdi_compile::onnx::edit::sort_topologically(g2).unwrap();
+    let inputs = inputs_for(&fused_model, 5);
+    let level = ort::session::builder::GraphOptimizationLevel::Disable;
+    let a = OrtRuntime::with_options(&fused_model, level, 1).unwrap().run(&inputs).unwrap();
+    let b = OrtRuntime::with_options(&with_relus, level, 1).unwrap().run(&inputs).unwrap();
+    for ((name, x), (_, y)) in a.iter().zip(&b) {
+        assert!(x.bit_identical(y), "{name} changes with the Relus put back");
+    }
+}
+
 #[test]
 fn int8_fixtures_fuse_into_integer_kernels_and_stay_close_per_channel_group() {
     let dir = tempfile::tempdir().unwrap();
@@ -73,6 +108,7 @@ fn int8_fixtures_fuse_into_integer_kernels_and_stay_close_per_channel_group() {
         assert!(worst_first.windows(2).all(|w| w[0] >= w[1]), "attribution is sorted worst first");
         assert!(q["bias_corrected_convolutions"].as_u64().unwrap() > 0);
         scales_are_finite(&out.join("model.onnx"));
+        relus_fused_exactly(q["emitted"]["relus_fused"].as_u64().unwrap(), &out.join("model.onnx"));
         for engine in [Engine::Ort, Engine::Tract] {
             for (name, t) in run_candidate(&out.join("model.onnx"), engine) {
                 assert!(t.data.to_f64().iter().all(|v| v.is_finite()), "{engine:?} {name} finite");

@@ -20,6 +20,10 @@ fn tract_target_writes_a_checked_folder() {
         assert_eq!(out.join("model.nnef.tar").is_file(), load == "model.nnef.tar", "{}", check["nnef"]);
         let tract_yaml = std::fs::read_to_string(out.join("tract.yaml")).unwrap();
         assert!(tract_yaml.contains("onnx_load_ms") && tract_yaml.contains("shape"));
+        // The bridge's 15x15 depthwise convolution ships in bands tract's SIMD kernel takes.
+        assert!(tract_yaml.contains("depthwise_split") && tract_yaml.contains("/bridge/dw/Conv"), "{tract_yaml}");
+        let shipped = common::load(&out.join("model.onnx"));
+        assert!(!pdi_compile::passes::split_wide_depthwise::any_to_split(shipped.graph.as_ref().unwrap()));
         assert!(std::fs::read_to_string(out.join("manifest.yaml")).unwrap().contains("target: tract"));
     }
 }

@@ -49,10 +49,19 @@ pub fn alone(model: &ModelProto, plan: &Plan, params: &HashMap<String, QParams>,
     let param = |v: &str| params.get(plan.root(v)).copied();
     let mut fake_inputs: HashMap<String, String> = HashMap::new();
     let mut pairs: Vec<(usize, String, String)> = Vec::new(); // node, float value, clone's value
+    // A value fused into a Relu has no quantized form: the Relu's clone reads the producer's
+    // clone, and the pair (the Relu's output) is reported as the producer's layer.
+    let mut fused_clones: HashMap<String, (usize, String)> = HashMap::new();
     for &i in &plan.quantized {
         let mut n = src.node[i].clone();
+        let mut layer = i;
         for s in Plan::activation_slots(&graph, i) {
             let v = n.input[s].clone();
+            if let Some((producer, clone)) = fused_clones.get(&v) {
+                n.input[s] = clone.clone();
+                layer = *producer;
+                continue;
+            }
             let Some(p) = param(&v).or_else(|| constant_params(&graph, &v, ty)) else { continue };
             let fq = match fake_inputs.get(&v) {
                 Some(f) => f.clone(),
@@ -75,7 +84,11 @@ pub fn alone(model: &ModelProto, plan: &Plan, params: &HashMap<String, QParams>,
         }
         for o in n.output.iter_mut().filter(|o| !o.is_empty()) {
             let alone = fresh_name(&g, &format!("{o}_alone"));
-            pairs.push((i, o.clone(), alone.clone()));
+            if plan.fused_relu.contains_key(o.as_str()) {
+                fused_clones.insert(o.clone(), (i, alone.clone()));
+            } else {
+                pairs.push((layer, o.clone(), alone.clone()));
+            }
             *o = alone;
         }
         n.name = format!("{}_alone", n.name);

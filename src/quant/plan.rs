@@ -29,6 +29,12 @@ pub struct Plan {
     pub float: BTreeMap<usize, String>,
     /// Value -> the value whose quantization parameters it uses.
     pub shares: HashMap<String, String>,
+    /// A quantized node's output read only by a Relu -> that Relu: the value gets no Q/DQ pair
+    /// of its own; the Relu's output quantization clamps at zero (its range starts there, so
+    /// its zero point is the lowest code) and emission removes the Relu, as ONNX Runtime's own
+    /// quantizer does. The producer's codes then cover [0, max] instead of wasting about half
+    /// of them on negatives the Relu discards, and calibration never reads the value.
+    pub fused_relu: BTreeMap<String, usize>,
 }
 
 impl Plan {
@@ -66,6 +72,7 @@ impl Plan {
                 out.extend(n.output.iter().filter(|o| !o.is_empty()).cloned());
             }
         }
+        out.retain(|v| !self.fused_relu.contains_key(v));
         out
     }
 
@@ -84,6 +91,11 @@ pub fn plan(g: &Graph, keep_float: &HashSet<String>) -> Plan {
     for &i in &g.order {
         let n = g.node(i);
         let op = n.op_type.as_str();
+        if op == "Relu" && fusable_relu(g, &p, i, &outputs, keep_float) {
+            p.quantized.insert(i);
+            p.fused_relu.insert(n.input[0].clone(), i);
+            continue;
+        }
         let reason = if tail.contains(&i) {
             Some("detection decode after the head convolutions (boxes and scores stay float)".to_string())
         } else if keep_float.contains(&n.name) || n.output.iter().any(|o| keep_float.contains(o)) {
@@ -115,6 +127,21 @@ pub fn plan(g: &Graph, keep_float: &HashSet<String>) -> Plan {
         }
     }
     p
+}
+
+/// Whether Relu node `i` can run as its producer's output quantization: the producer is
+/// quantized with a quantized output that only this Relu reads, and neither value is a graph
+/// output nor kept float.
+fn fusable_relu(g: &Graph, p: &Plan, i: usize, outputs: &HashSet<&str>, keep_float: &HashSet<String>) -> bool {
+    let n = g.node(i);
+    let (Some(x), Some(y)) = (n.input.first(), n.output.first()) else { return false };
+    let kept = |s: &str| keep_float.contains(s) || outputs.contains(s);
+    n.domain.is_empty()
+        && !kept(&n.name)
+        && !kept(x)
+        && !kept(y)
+        && g.consumers_of(x) == [i]
+        && g.producer.get(x.as_str()).is_some_and(|&q| p.quantized.contains(&q) && !p.float_output.contains(&q) && !p.shares.contains_key(x))
 }
 
 fn float_constant(g: &Graph, name: &str) -> bool {

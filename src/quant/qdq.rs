@@ -35,6 +35,8 @@ pub struct Emitted {
     pub int8_weights: usize,
     /// Biases whose int32 value had to be clamped (a tiny input or weight scale).
     pub biases_clamped: usize,
+    /// Relus removed because their output quantization clamps at zero (`Plan::fused_relu`).
+    pub relus_fused: usize,
 }
 
 /// The QDQ model for `model` under `plan`.
@@ -126,6 +128,23 @@ pub fn emit(model: &ModelProto, plan: &Plan, o: &EmitOptions) -> Result<(ModelPr
         }
         node.input[2] = b_dq;
     }
+    // Fused Relus: the output's QuantizeLinear reads the Relu's input instead. Exact when its
+    // zero point is the lowest code (always, as ranges start at 0), since the quantizer then
+    // clamps negatives to zero itself.
+    let mut dead = std::collections::HashSet::new();
+    for (x, &r) in &plan.fused_relu {
+        let y = &src.node[r].output[0];
+        let p = param(y)?;
+        if p.zero_point != p.qmin {
+            continue;
+        }
+        for n in g.node.iter_mut().filter(|n| n.op_type == "QuantizeLinear" && n.input[0] == *y) {
+            n.input[0] = x.clone();
+        }
+        dead.insert(r);
+        stats.relus_fused += 1;
+    }
+    crate::onnx::edit::remove_nodes(&mut g, &dead);
     stats.quantized_nodes = plan.quantized.len();
     sort_topologically(&mut g)?;
     let mut out = model.clone();

@@ -47,9 +47,24 @@ fn executor(threads: usize) -> Executor {
     e
 }
 
-/// The decluttered typed model of `model` with its inputs fixed to the shapes of `inputs`,
-/// and its input and output names.
+/// `model` as tract is given it: depthwise convolutions wider than tract's SIMD kernel takes
+/// split into bands (`split-wide-depthwise`; the same sums in another order), since past
+/// 128 taps tract runs them as scalar loops.
+pub fn tract_ready(model: &ModelProto) -> Result<std::borrow::Cow<'_, ModelProto>> {
+    use crate::passes::split_wide_depthwise::{any_to_split, split_all};
+    let graph = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+    if !any_to_split(graph) {
+        return Ok(std::borrow::Cow::Borrowed(model));
+    }
+    let mut ready = model.clone();
+    split_all(ready.graph.as_mut().expect("checked above"))?;
+    Ok(std::borrow::Cow::Owned(ready))
+}
+
+/// The decluttered typed model of `model` (made [`tract_ready`]) with its inputs fixed to the
+/// shapes of `inputs`, and its input and output names.
 pub fn typed_model(model: &ModelProto, inputs: &[(String, Tensor)]) -> Result<(TypedModel, Vec<String>, Vec<String>)> {
+    let model = tract_ready(model)?;
     let graph = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
     let inits: std::collections::HashSet<&str> = graph.initializer.iter().map(|t| t.name.as_str()).collect();
     let input_names: Vec<String> = graph.input.iter().map(|v| v.name.clone()).filter(|n| !inits.contains(n.as_str())).collect();

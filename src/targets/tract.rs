@@ -5,6 +5,10 @@
 //! load. DIR/model.nnef.tar is kept only when it loads faster than the ONNX file (measured:
 //! it skips ONNX parsing, type inference and decluttering).
 //!
+//! Depthwise convolutions wider than tract's SIMD kernel takes are split into bands in the
+//! shipped model (`split-wide-depthwise`), so any tract that loads it runs them vectorized;
+//! tract.yaml lists them.
+//!
 //! An INT8 model is kept only where tract ran it faster than the float model it was quantized
 //! from, on the machine that compiles: tract's integer kernels do not beat its f32 ones
 //! everywhere (the trained tiny v5 pruned, 256x192, 2 x86 cores: 22.3 ms in INT8 against
@@ -46,6 +50,9 @@ pub struct TractArtifact {
     /// For a quantized model: INT8 kept or replaced by its float model, with both timings.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub int8: Option<String>,
+    /// Depthwise convolutions split into bands for tract's SIMD kernel, and those left whole.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub depthwise_split: Vec<serde_json::Value>,
 }
 
 /// Checks `model` on tract and writes DIR/tract.yaml (and the NNEF archive where it pays);
@@ -68,6 +75,8 @@ pub fn write(dir: &Path, model: ModelProto, float: Option<ModelProto>, threads: 
             }
         }
     };
+    let mut model = model;
+    let (split, left) = crate::passes::split_wide_depthwise::split_all(model.graph.as_mut().ok_or_else(|| anyhow!("model has no graph"))?)?;
     let model = &model;
 
     let t = Instant::now();
@@ -115,6 +124,7 @@ pub fn write(dir: &Path, model: ModelProto, float: Option<ModelProto>, threads: 
         ort_run_ms,
         threads,
         int8,
+        depthwise_split: split.into_iter().chain(left).collect(),
     };
     write_atomic(&dir.join("tract.yaml"), yaml_serde::to_string(&artifact)?.as_bytes())?;
     Ok((artifact, model.clone()))
