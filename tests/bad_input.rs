@@ -286,6 +286,7 @@ fn bad_rknn_qat_settings_and_placement_are_refused() {
         (qat.replace("rknn-qat: {minutes: 5}", "rknn-qat: {frames: 4}"), "4 frames for batches of 8"),
         (qat.replace("rknn-qat: {minutes: 5}", "rknn-qat: {steps: 3}"), "unknown field `steps`"),
         (misplaced, "needs a model from rknn-legalize"),
+        (qat.replace("rknn-qat: {minutes: 5}", "rknn-hybrid: {fp16: [/no/such/Conv]}"), "'/no/such/Conv', which is not a node"),
     ] {
         let recipe = dir.path().join("qat.yaml");
         std::fs::write(&recipe, &recipe_text).unwrap();

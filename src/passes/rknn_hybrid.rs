@@ -6,7 +6,8 @@
 //! (`pdi.rknn_fp16_layers`, a JSON list of {node, input, output}), which `--target rknn`
 //! copies into rknn.yaml and `rknn-convert` hands to the toolkit as custom hybrid spans.
 //! Reports: the simulated INT8 error before and after, the layers kept and those tried and
-//! rejected (the `quantize` pass's mixed-precision search, run on a copy).
+//! rejected (the `quantize` pass's mixed-precision search, run on a copy). Layers named in
+//! `fp16` are kept whatever the search finds.
 //!
 //! The simulation mirrors the toolkit's `w8a8 / normal / channel`: symmetric per-channel
 //! 8-bit weights, int8 activations with min/max ranges, no bias correction. It is not the
@@ -17,7 +18,7 @@ use crate::onnx::proto::{ModelProto, StringStringEntryProto};
 use crate::pipeline::{Pass, PassContext};
 use crate::quant::params::ActivationType;
 use crate::quant::range::Method;
-use anyhow::{anyhow, Result};
+use anyhow::{anyhow, bail, Result};
 use serde::{Deserialize, Serialize};
 
 pub const METADATA_KEY: &str = "pdi.rknn_fp16_layers";
@@ -30,11 +31,13 @@ pub struct Options {
     /// At most this many layers in FP16 (each costs NPU time).
     pub max_layers: usize,
     pub calib_frames: usize,
+    /// Nodes to keep in FP16 whatever the search finds (the simulation starts with them float).
+    pub fp16: Vec<String>,
 }
 
 impl Default for Options {
     fn default() -> Self {
-        Options { error_budget: 0.05, max_layers: 8, calib_frames: 16 }
+        Options { error_budget: 0.05, max_layers: 8, calib_frames: 16, fp16: Vec::new() }
     }
 }
 
@@ -58,6 +61,10 @@ impl Pass for RknnHybrid {
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
         crate::detect::split_head::HeadLayout::from_model(model).map_err(|_| anyhow!("rknn-hybrid needs a model from rknn-legalize: put it after rknn-legalize in the recipe"))?;
         let o = &self.options;
+        let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+        if let Some(missing) = o.fp16.iter().find(|name| !g.node.iter().any(|n| &n.name == *name)) {
+            bail!("rknn-hybrid: fp16 names '{missing}', which is not a node of the legalized model; `pdi-compile inspect` lists the nodes");
+        }
         let simulate = Quantize {
             options: QuantizeOptions {
                 method: Method::Minmax,
@@ -67,6 +74,7 @@ impl Pass for RknnHybrid {
                 bias_correction: false,
                 error_budget: Some(o.error_budget),
                 max_float_layers: o.max_layers,
+                keep_float: o.fp16.clone(),
                 ..QuantizeOptions::default()
             },
         };
@@ -74,9 +82,12 @@ impl Pass for RknnHybrid {
         let report = simulate.run(&mut copy, cx)?;
         let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
         let kept = report["mixed_precision"]["kept_float"].as_array().cloned().unwrap_or_default();
-        let layers: Vec<Fp16Layer> = kept
+        let searched = kept.iter().filter_map(|k| k["node"].as_str());
+        let layers: Vec<Fp16Layer> = o
+            .fp16
             .iter()
-            .filter_map(|k| k["node"].as_str())
+            .map(|s| s.as_str())
+            .chain(searched)
             .filter_map(|name| g.node.iter().find(|n| n.name == name))
             .filter_map(|n| Some(Fp16Layer { node: n.name.clone(), input: n.input.first()?.clone(), output: n.output.first()?.clone() }))
             .collect();

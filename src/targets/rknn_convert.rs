@@ -73,8 +73,11 @@ pub struct ConvertReport {
     pub trained_qdq: Vec<Agreement>,
     pub npu_layers: usize,
     pub cpu_layers: Vec<String>,
-    /// Layers built in FP16 (rknn.yaml's fp16_layers, by node name).
+    /// Layers rknn.yaml asks to build in FP16 (its fp16_layers, by node name).
     pub fp16_layers: Vec<String>,
+    /// How many of them the toolkit's quantization config holds: it skips, with a warning in
+    /// the build log, a span whose tensors its own fusions renamed.
+    pub fp16_layers_built: usize,
     /// Detections after post-processing (conf 0.25, NMS 0.45): ORT's, the simulator's, and
     /// how many of ORT's the simulator found (same class, IoU ≥ 0.5).
     pub detections_ort: usize,
@@ -213,6 +216,14 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
         .map(|a| format!("{}: cosine {:.5} < {}", a.name, a.error.cosine, req.min_cosine))
         .collect();
     failures.extend(cpu_layers.iter().map(|l| format!("placed on the CPU: {l}")));
+    let fp16_built = result["fp16_built"].as_u64().unwrap_or(0) as usize;
+    if fp16_built < config.quantization.fp16_layers.len() {
+        crate::warn::warn(format!(
+            "rknn-convert: the toolkit built {fp16_built} of the {} FP16 spans rknn.yaml asks for; it skips a span whose tensors its fusions renamed (\"Cannot find the quantization layer\" in {}), and those layers run in INT8; name the layer's fused neighbour instead",
+            config.quantization.fp16_layers.len(),
+            dir.join("rknn_build.log").display()
+        ));
+    }
     let report = ConvertReport {
         rknn: dir.join("model.rknn").display().to_string(),
         toolkit: result["toolkit"].as_str().unwrap_or("?").to_string(),
@@ -236,6 +247,7 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
         npu_layers,
         cpu_layers,
         fp16_layers: config.quantization.fp16_layers.iter().map(|l| l.node.clone()).collect(),
+        fp16_layers_built: fp16_built,
         detections_ort: n_ort,
         detections_rknn: n_rknn,
         detections_matched: matched,
@@ -315,7 +327,7 @@ impl ConvertReport {
                 s += &format!("  {:<18} {:>9.5} {:>10.3e} {:>10.3e}\n", a.name, a.error.cosine, a.error.rel_l2, a.error.max_abs);
             }
         }
-        s += &format!("  layers: {} on the NPU ({} kept in FP16), {} on the CPU\n", self.npu_layers, self.fp16_layers.len(), self.cpu_layers.len());
+        s += &format!("  layers: {} on the NPU ({} of {} asked kept in FP16), {} on the CPU\n", self.npu_layers, self.fp16_layers_built, self.fp16_layers.len(), self.cpu_layers.len());
         s += &format!("  detections (conf {}): ORT {}, simulator {}, matched {}\n", self.score_threshold, self.detections_ort, self.detections_rknn, self.detections_matched);
         let flat: Vec<&str> = self.outputs.iter().chain(&self.groups).filter(|a| !(a.error.cosine >= self.min_cosine) && a.error.max_abs < OUTPUT_STEP).map(|a| a.name.as_str()).collect();
         if !flat.is_empty() {

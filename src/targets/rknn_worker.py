@@ -50,12 +50,16 @@ def main(job_path):
         lo, hi = cfg["input"]["range"]
         trained[cfg["input"]["name"] + "_int8"] = {"min": lo, "max": hi}
     written = {"set": 0, "absent": []}
+    fp16_built = 0
     if q["do_quantization"] and (spans or trained):
         # Hybrid quantization: step 1 writes <model>.model/.data/.quantization.cfg into the
         # working folder with the spans in float16, step 2 builds from them. Trained points
         # (rknn-qat) replace the toolkit's own calibration of those tensors in between.
         ok(r.hybrid_quantization_step1(dataset=dataset, custom_hybrid=spans), "hybrid_quantization_step1")
         stem = os.path.splitext(os.path.basename(cfg["model"]))[0]
+        # The toolkit skips (with a warning) a span whose tensors its own graph renamed by fusion.
+        with open(f"{stem}.quantization.cfg") as f:
+            fp16_built = len(YAML(typ="safe").load(f).get("custom_quantize_layers") or {})
         if trained:
             written = write_points(f"{stem}.quantization.cfg", trained)
         r.release()
@@ -74,7 +78,7 @@ def main(job_path):
     r.release()
     with open(job["result"], "w") as f:
         json.dump({"toolkit": version("rknn-toolkit2"), "ranges_set": written["set"], "ranges_absent": written["absent"],
-                   "trained_points": trained_count}, f)
+                   "trained_points": trained_count, "fp16_built": fp16_built}, f)
 
 
 def write_points(path, trained):
