@@ -5,7 +5,7 @@
 //! Why: tract-core 0.23 runs a depthwise zone through its SIMD kernel only up to
 //! [`MAX_TAPS`] taps; past that every output is a scalar loop. The PALS-Bridge's 15x15
 //! depthwise convolution (225 taps) took 226 ms of tract's 768 ms on the full-size v5 at
-//! 640x480 (ONNX Runtime: 15 ms); split into two 8x15 bands it takes about 40 ms.
+//! 640x480 (ONNX Runtime: 15 ms); split into two 8x15 bands it takes 28 ms.
 //!
 //! Each band keeps the original's stride and dilation and covers a run of kernel rows (and,
 //! for very wide kernels, of columns) that contains the kernel's anchor, so its padding stays
