@@ -98,10 +98,6 @@ fn cleanup_merges_duplicate_initializers() {
     let _ = to_tensor(&m.graph.as_ref().unwrap().initializer[0]).unwrap();
 }
 
-fn ints(name: &str, v: &[i64]) -> AttributeProto {
-    AttributeProto { name: name.into(), r#type: AttributeType::Ints as i32, ints: v.to_vec(), ..Default::default() }
-}
-
 /// Depthwise convolutions wider than tract's SIMD kernel takes, in the geometries a split has
 /// to respect: same padding with a bias, stride 2 on a 17x17 kernel (no row band fits, so
 /// rows and columns split), dilation 2, and no padding at all (cannot split).
@@ -109,8 +105,8 @@ fn wide_depthwise_chain() -> ModelProto {
     let mut rng = common::Lcg(7);
     let mut w = |name: &str, k: usize| init(name, vec![3, 1, k, k], (0..3 * k * k).map(|_| rng.next_f32() - 0.5).collect());
     let dw = |pads: i64, stride: i64, dilation: i64, k: i64| {
-        let group = AttributeProto { name: "group".into(), r#type: AttributeType::Int as i32, i: Some(3), ..Default::default() };
-        vec![group, ints("kernel_shape", &[k, k]), ints("pads", &[pads; 4]), ints("strides", &[stride; 2]), ints("dilations", &[dilation; 2])]
+        use pdi_compile::onnx::attr::{make_int, make_ints};
+        vec![make_int("group", 3), make_ints("kernel_shape", vec![k, k]), make_ints("pads", vec![pads; 4]), make_ints("strides", vec![stride; 2]), make_ints("dilations", vec![dilation; 2])]
     };
     ModelProto {
         ir_version: 8,

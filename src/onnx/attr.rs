@@ -1,6 +1,6 @@
-//! Reading node attributes by name, with ONNX defaults supplied by the caller.
+//! Reading node attributes by name, with ONNX defaults supplied by the caller, and making them.
 
-use super::proto::{AttributeProto, NodeProto, TensorProto};
+use super::proto::{AttributeProto, AttributeType, NodeProto, TensorProto};
 
 pub fn find<'a>(node: &'a NodeProto, name: &str) -> Option<&'a AttributeProto> {
     node.attribute.iter().find(|a| a.name == name)
@@ -24,4 +24,14 @@ pub fn string(node: &NodeProto, name: &str, default: &str) -> String {
 
 pub fn tensor<'a>(node: &'a NodeProto, name: &str) -> Option<&'a TensorProto> {
     find(node, name).and_then(|a| a.t.as_ref())
+}
+
+/// An INT attribute.
+pub fn make_int(name: &str, v: i64) -> AttributeProto {
+    AttributeProto { name: name.into(), r#type: AttributeType::Int as i32, i: Some(v), ..Default::default() }
+}
+
+/// An INTS attribute.
+pub fn make_ints(name: &str, v: Vec<i64>) -> AttributeProto {
+    AttributeProto { name: name.into(), r#type: AttributeType::Ints as i32, ints: v, ..Default::default() }
 }

@@ -13,17 +13,13 @@
 use crate::ir::{infer, Graph};
 use crate::onnx::attr;
 use crate::onnx::edit::{fresh_name, set_initializer};
-use crate::onnx::proto::{AttributeProto, AttributeType, ModelProto, NodeProto};
+use crate::onnx::proto::{ModelProto, NodeProto};
 use crate::onnx::tensor_proto::from_tensor;
 use crate::pipeline::{Pass, PassContext};
 use crate::tensor::Tensor;
 use anyhow::Result;
 
 pub struct ResizeToDeconv;
-
-fn ints_attr(name: &str, v: Vec<i64>) -> AttributeProto {
-    AttributeProto { name: name.into(), r#type: AttributeType::Ints as i32, ints: v, ..Default::default() }
-}
 
 /// Integer (sh, sw) factors when `n` is a nearest block-copy upsampling of a [N, C, H, W] input.
 fn block_copy_factors(n: &NodeProto, input: &[usize], output: &[usize]) -> Result<(usize, usize), String> {
@@ -85,9 +81,9 @@ impl Pass for ResizeToDeconv {
                         input: vec![old.input[0].clone(), wn],
                         output: vec![old.output[0].clone()],
                         attribute: vec![
-                            AttributeProto { name: "group".into(), r#type: AttributeType::Int as i32, i: Some(c as i64), ..Default::default() },
-                            ints_attr("kernel_shape", vec![sh as i64, sw as i64]),
-                            ints_attr("strides", vec![sh as i64, sw as i64]),
+                            attr::make_int("group", c as i64),
+                            attr::make_ints("kernel_shape", vec![sh as i64, sw as i64]),
+                            attr::make_ints("strides", vec![sh as i64, sw as i64]),
                         ],
                         doc_string: old.doc_string,
                         metadata_props: old.metadata_props,

@@ -80,7 +80,6 @@ impl Pass for RknnHybrid {
         };
         let mut copy = model.clone();
         let report = simulate.run(&mut copy, cx)?;
-        let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
         let kept = report["mixed_precision"]["kept_float"].as_array().cloned().unwrap_or_default();
         let searched = kept.iter().filter_map(|k| k["node"].as_str());
         let layers: Vec<Fp16Layer> = o

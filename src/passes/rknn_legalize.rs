@@ -22,7 +22,7 @@ use crate::detect::split_head::{decode_dense, HeadLayout, Level, METADATA_KEY};
 use crate::ir::{infer, shapes::static_image_input, Graph};
 use crate::onnx::attr;
 use crate::onnx::edit::{fresh_name, sort_topologically, tensor_value_info};
-use crate::onnx::proto::{AttributeProto, AttributeType, GraphProto, ModelProto, NodeProto, StringStringEntryProto};
+use crate::onnx::proto::{AttributeProto, GraphProto, ModelProto, NodeProto, StringStringEntryProto};
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
 use crate::pipeline::{Pass, PassContext};
 use crate::runtime::{tract_runtime::TractRuntime, Runtime};
@@ -356,11 +356,11 @@ fn split_level(g: &mut GraphProto, opset: i64, kind: HeadKind, classes: usize, l
                     if let (true, Some(sum_name)) = (score_sum, &level.score_sum) {
                         let summed = fresh_name(g, &format!("{}_unclipped", sum_name));
                         let mut inputs = vec![level.scores.clone()];
-                        let mut attrs = vec![AttributeProto { name: "keepdims".into(), r#type: AttributeType::Int as i32, i: Some(1), ..Default::default() }];
+                        let mut attrs = vec![attr::make_int("keepdims", 1)];
                         if opset >= 13 {
                             inputs.push(constant(g, &format!("{sum_name}_axes"), Tensor::new(vec![1], crate::tensor::TensorData::I64(vec![1]))));
                         } else {
-                            attrs.push(AttributeProto { name: "axes".into(), r#type: AttributeType::Ints as i32, ints: vec![1], ..Default::default() });
+                            attrs.push(attr::make_ints("axes", vec![1]));
                         }
                         push_node(g, "ReduceSum", inputs, &summed, attrs);
                         let lo = constant(g, &format!("{sum_name}_min"), Tensor::f32(vec![], vec![0.0]));

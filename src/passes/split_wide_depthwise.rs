@@ -18,7 +18,7 @@
 
 use crate::onnx::attr;
 use crate::onnx::edit::{fresh_name, initializer, set_initializer};
-use crate::onnx::proto::{AttributeProto, AttributeType, GraphProto, ModelProto, NodeProto};
+use crate::onnx::proto::{GraphProto, ModelProto, NodeProto};
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
 use crate::pipeline::{Pass, PassContext};
 use crate::tensor::Tensor;
@@ -135,7 +135,7 @@ fn plan(n: &NodeProto, w: &crate::onnx::proto::TensorProto, dims: &[usize]) -> R
     let pads = attr::ints(n, "pads").unwrap_or(vec![0; 4]);
     let strides = attr::ints(n, "strides").unwrap_or(vec![1, 1]);
     let dilations = attr::ints(n, "dilations").unwrap_or(vec![1, 1]);
-    if pads.len() != 4 || strides.len() != 2 || dilations.len() != 2 || pads.iter().chain(&dilations).any(|&v| v < 0) || dilations.iter().any(|&d| d == 0) {
+    if pads.len() != 4 || strides.len() != 2 || dilations.len() != 2 || pads.iter().chain(&dilations).any(|&v| v < 0) || dilations.contains(&0) {
         return Err(format!("pads {pads:?}, strides {strides:?}, dilations {dilations:?} are not a 2-D convolution's"));
     }
     let geometry = Geometry {
@@ -213,11 +213,11 @@ fn band_nodes(g: &mut GraphProto, i: usize, weights: &Tensor, geo: &Geometry, ba
             input,
             output: vec![out.clone()],
             attribute: vec![
-                int_attr("group", c as i64),
-                ints_attr("kernel_shape", vec![bh as i64, bw as i64]),
-                ints_attr("pads", pads.iter().map(|&p| p as i64).collect()),
-                ints_attr("strides", geo.strides.to_vec()),
-                ints_attr("dilations", geo.dilations.iter().map(|&d| d as i64).collect()),
+                attr::make_int("group", c as i64),
+                attr::make_ints("kernel_shape", vec![bh as i64, bw as i64]),
+                attr::make_ints("pads", pads.iter().map(|&p| p as i64).collect()),
+                attr::make_ints("strides", geo.strides.to_vec()),
+                attr::make_ints("dilations", geo.dilations.iter().map(|&d| d as i64).collect()),
             ],
             ..Default::default()
         });
@@ -232,14 +232,6 @@ fn band_nodes(g: &mut GraphProto, i: usize, weights: &Tensor, geo: &Geometry, ba
         });
     }
     nodes
-}
-
-fn int_attr(name: &str, v: i64) -> AttributeProto {
-    AttributeProto { name: name.into(), r#type: AttributeType::Int as i32, i: Some(v), ..Default::default() }
-}
-
-fn ints_attr(name: &str, v: Vec<i64>) -> AttributeProto {
-    AttributeProto { name: name.into(), r#type: AttributeType::Ints as i32, ints: v, ..Default::default() }
 }
 
 #[cfg(test)]
