@@ -3,6 +3,7 @@
 //! meets the MAC/parameter targets and runs alike on ORT and tract.
 
 mod common;
+use pdi_compile::onnx::attr::{make_int as int, make_ints as ints};
 use common::*;
 use pdi_compile::onnx::proto::{AttributeProto, GraphProto, ModelProto, NodeProto, OperatorSetIdProto};
 use pdi_compile::onnx::tensor_proto::from_tensor;
@@ -53,12 +54,6 @@ impl Builder {
     }
 }
 
-fn int(name: &str, v: i64) -> AttributeProto {
-    AttributeProto { name: name.into(), r#type: 2, i: Some(v), ..Default::default() }
-}
-fn ints(name: &str, v: Vec<i64>) -> AttributeProto {
-    AttributeProto { name: name.into(), r#type: 7, ints: v, ..Default::default() }
-}
 
 /// A random model: stem, then `blocks` blocks drawn from `kinds`, then a fixed 12-channel head.
 fn random_model(seed: u64, kinds: &[u8]) -> ModelProto {
