@@ -175,6 +175,41 @@ fn mixed_precision_keeps_the_most_sensitive_layers_float_until_the_budget_holds(
     assert!(q["mixed_precision"]["kept_float"].as_array().unwrap().is_empty());
 }
 
+/// `float_where_faster` profiles the INT8 model, tries its heaviest convolutions float and
+/// keeps a layer float exactly when the whole model timed faster by the stated margin. Which
+/// layers win depends on the machine; what is checked is that the profile's kernels map back
+/// to the model's convolutions and that the plan follows the timings.
+#[test]
+fn float_where_faster_tries_the_heaviest_convolutions_and_follows_the_timings() {
+    let dir = tempfile::tempdir().unwrap();
+    let recipe = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 8, float_where_faster: true");
+    let q = compile(V5, &recipe, &dir.path().join("q"), &[]);
+    let s = &q["float_where_faster"];
+    let tried = s["tried"].as_array().unwrap();
+    assert!(!tried.is_empty(), "the profile's QLinearConv kernels map to the model's convolutions: {s}");
+    let total = s["profiled_kernel_ms"].as_f64().unwrap();
+    let (share, gain) = (s["min_share"].as_f64().unwrap(), s["min_gain"].as_f64().unwrap());
+    let fixture = load(&repo().join(V5));
+    let convs: Vec<&str> = fixture.graph.as_ref().unwrap().node.iter().filter(|n| n.op_type == "Conv").map(|n| n.name.as_str()).collect();
+    let floats = q["float_nodes"].as_array().unwrap();
+    let reason = |node: &str| floats.iter().find(|f| f["node"] == node).map(|f| f["why"].as_str().unwrap().to_string());
+    let mut last = f64::INFINITY;
+    for t in tried {
+        let node = t["node"].as_str().unwrap();
+        assert!(convs.contains(&node), "{node} is a convolution of the model");
+        let k = t["int8_kernel_ms"].as_f64().unwrap();
+        assert!(k >= share * total && k <= last, "heaviest first, each at least {share} of {total} ms: {t}");
+        last = k;
+        let by = |a: &str, b: &str| t[a].as_f64().unwrap() < t[b].as_f64().unwrap() * (1.0 - gain);
+        let faster = by("model_ms_float", "model_ms_int8") && by("min_ms_float", "min_ms_int8");
+        assert_eq!(t["kept_float"].as_bool().unwrap(), faster, "{t}");
+        match reason(node) {
+            Some(why) => assert!(faster && why.contains("faster in float"), "{node} is float only if it timed faster: {why}"),
+            None => assert!(!faster, "{node} timed faster but stayed INT8"),
+        }
+    }
+}
+
 /// FP16 of the trained model (close to float: 2e-3) and of a random-weight v8 fixture (which
 /// amplifies f16 rounding through activations of +-200: 0.1).
 #[test]

@@ -10,7 +10,8 @@
 //! Reports: the range method and frames, warnings, the rounding (learned: each layer's output
 //! error with nearest and learned rounding), every quantized layer's error against
 //! float alone and accumulated (worst first), the bias shifts corrected, the layers mixed
-//! precision kept float and why, quantization-aware recovery (`qat`: its training, the output
+//! precision kept float and why, the layers `float_where_faster` timed (and kept float where
+//! ONNX Runtime ran the model faster so), quantization-aware recovery (`qat`: its training, the output
 //! error before and after, the written model on ONNX Runtime against the worker's
 //! fake-quantized forward), and the outputs' error per channel group on held-out frames
 //! (and under each of `calib_conditions`, the stress conditions mixed into calibration).
@@ -53,6 +54,10 @@ pub struct Options {
     pub max_float_layers: usize,
     /// Nodes (or their output values) to leave in float.
     pub keep_float: Vec<String>,
+    /// After mixed precision: keep float the heavy convolutions ONNX Runtime runs the model
+    /// faster without quantizing, timed on this machine (`quant::speed`). The choice follows the
+    /// compiling machine; `keep_float` pins one.
+    pub float_where_faster: bool,
     pub seed: u64,
     /// `qdq` (ONNX Runtime fuses it) or `qlinear` (convolutions as QLinearConv, for tract).
     pub format: Format,
@@ -124,6 +129,7 @@ impl Default for Options {
             error_budget: None,
             max_float_layers: 8,
             keep_float: Vec::new(),
+            float_where_faster: false,
             seed: 0,
             format: Format::Qdq,
             calib_conditions: Vec::new(),
@@ -233,7 +239,7 @@ impl Pass for Quantize {
 
         let mixed = match o.error_budget {
             Some(budget) => mixed_precision(&MixedPrecision { float: &float, quantized: &quantized, graph: &graph, keep: &keep, layers: &alone.layers, frames: &analysis, threads, budget, max_layers: o.max_float_layers }, &emit_with)?,
-            None => Mixed::default(),
+            None => Mixed { names: keep.clone(), ..Mixed::default() },
         };
         warnings.extend(mixed.warning.clone());
         let (current, (quantized, emitted)) = match mixed.chosen {
@@ -241,6 +247,15 @@ impl Pass for Quantize {
             None => (base.clone(), (quantized, emitted)),
         };
         clock.lap("mixed_precision");
+        let (current, (quantized, emitted), speed) = if o.float_where_faster {
+            let search = crate::quant::speed::Search { graph: &graph, keep: &mixed.names, feed: &held_out[0], threads };
+            let found = crate::quant::speed::float_where_faster(&search, &current, &quantized, &emit_with)?;
+            let chosen = found.chosen.unwrap_or((current, (quantized, emitted)));
+            (chosen.0, chosen.1, Some(found.report))
+        } else {
+            (current, (quantized, emitted), None)
+        };
+        clock.lap("float_where_faster");
         // QAT measures the model it keeps on the held-out frames; those errors are reported below.
         let (quantized, qat, kept_errors) = match &o.qat {
             None => (quantized, None, None),
@@ -297,6 +312,7 @@ impl Pass for Quantize {
             "warnings": warnings,
             "ort_optimized_ops": ort_ops,
             "mixed_precision": { "error_budget": o.error_budget, "kept_float": mixed.kept, "tried_and_rejected": mixed.rejected },
+            "float_where_faster": speed,
             "float_nodes": float_nodes,
             "output_errors": outputs,
             "worst_output_rel_l2": worst_rel_l2(&outputs),
@@ -431,6 +447,8 @@ struct Mixed {
     kept: Vec<serde_json::Value>,
     rejected: Vec<serde_json::Value>,
     warning: Option<String>,
+    /// Every node float in the chosen plan by name (keep_float and the layers kept).
+    names: HashSet<String>,
 }
 
 /// Mixed precision: layers go float one at a time, largest alone error first, until the
@@ -460,6 +478,7 @@ fn mixed_precision(m: &MixedPrecision, emit_with: &dyn Fn(&Plan) -> Result<(Mode
             out.rejected.push(step);
         }
     }
+    out.names = names;
     if worst > m.budget {
         out.warning = Some(format!("error budget {} not met: worst output rel L2 {worst:.4} with {} layers float after trying {} (max_float_layers {})", m.budget, out.kept.len(), out.kept.len() + out.rejected.len(), m.max_layers));
     }

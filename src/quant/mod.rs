@@ -12,3 +12,4 @@ pub mod qdq;
 pub mod qlinear;
 pub mod range;
 pub mod rounding;
+pub mod speed;

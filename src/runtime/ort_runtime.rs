@@ -28,6 +28,24 @@ impl OrtRuntime {
         Ok(OrtRuntime { session })
     }
 
+    /// A session that records ORT's profile under `prefix` until [`Self::end_profiling`].
+    pub fn profiled(model: &ModelProto, threads: usize, prefix: &std::path::Path) -> Result<OrtRuntime> {
+        let env = super::ort_lib::environment()?;
+        let bytes = model.encode_to_vec();
+        let session = Session::builder(env)
+            .and_then(|b| b.with_optimization_level(GraphOptimizationLevel::Level3).map_err(Into::into))
+            .and_then(|b| b.with_intra_threads(threads).map_err(Into::into))
+            .and_then(|b| b.with_profiling(prefix).map_err(Into::into))
+            .and_then(|mut b| b.commit_from_memory(&bytes))
+            .map_err(|e| anyhow!("ONNX Runtime rejected the model: {e}"))?;
+        Ok(OrtRuntime { session })
+    }
+
+    /// Ends a [`Self::profiled`] session's profile; returns the file it wrote.
+    pub fn end_profiling(&mut self) -> Result<String> {
+        self.session.end_profiling().map_err(|e| anyhow!("ONNX Runtime could not write its profile: {e}"))
+    }
+
     /// The graph ONNX Runtime actually runs for `model` after its optimizations (fusions
     /// such as DQ -> Conv -> Q into QLinearConv), as op type -> count.
     pub fn optimized_ops(model: &ModelProto) -> Result<std::collections::BTreeMap<String, usize>> {
