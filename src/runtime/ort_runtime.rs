@@ -18,24 +18,24 @@ impl OrtRuntime {
     }
 
     pub fn with_options(model: &ModelProto, level: GraphOptimizationLevel, threads: usize) -> Result<OrtRuntime> {
+        Self::build(model, level, threads, None)
+    }
+
+    /// A session that records ORT's profile under `prefix` until [`Self::end_profiling`].
+    pub fn profiled(model: &ModelProto, threads: usize, prefix: &std::path::Path) -> Result<OrtRuntime> {
+        Self::build(model, GraphOptimizationLevel::Level3, threads, Some(prefix))
+    }
+
+    fn build(model: &ModelProto, level: GraphOptimizationLevel, threads: usize, profile: Option<&std::path::Path>) -> Result<OrtRuntime> {
         let env = super::ort_lib::environment()?;
         let bytes = model.encode_to_vec();
         let session = Session::builder(env)
             .and_then(|b| b.with_optimization_level(level).map_err(Into::into))
             .and_then(|b| b.with_intra_threads(threads).map_err(Into::into))
-            .and_then(|mut b| b.commit_from_memory(&bytes))
-            .map_err(|e| anyhow!("ONNX Runtime rejected the model: {e}"))?;
-        Ok(OrtRuntime { session })
-    }
-
-    /// A session that records ORT's profile under `prefix` until [`Self::end_profiling`].
-    pub fn profiled(model: &ModelProto, threads: usize, prefix: &std::path::Path) -> Result<OrtRuntime> {
-        let env = super::ort_lib::environment()?;
-        let bytes = model.encode_to_vec();
-        let session = Session::builder(env)
-            .and_then(|b| b.with_optimization_level(GraphOptimizationLevel::Level3).map_err(Into::into))
-            .and_then(|b| b.with_intra_threads(threads).map_err(Into::into))
-            .and_then(|b| b.with_profiling(prefix).map_err(Into::into))
+            .and_then(|b| match profile {
+                Some(p) => b.with_profiling(p).map_err(Into::into),
+                None => Ok(b),
+            })
             .and_then(|mut b| b.commit_from_memory(&bytes))
             .map_err(|e| anyhow!("ONNX Runtime rejected the model: {e}"))?;
         Ok(OrtRuntime { session })
