@@ -197,7 +197,8 @@ pub enum Command {
         /// Measure the FP16 variants on tract also where tract emulates f16 (x86_64: slow).
         #[arg(long)]
         tract_fp16: bool,
-        /// Time budget of the pruned variants' recovery by distillation (default: the recipe's).
+        /// Total time budget of the pruned variants' recovery by distillation, shared among the
+        /// recipe's recover passes (default: the recipe's, 19 minutes).
         #[arg(long)]
         recover_minutes: Option<f64>,
         /// Threads for ONNX Runtime and tract alike (default: every core).
@@ -225,7 +226,8 @@ pub enum Command {
         /// Simulated frames to check on when no --data is given.
         #[arg(long, default_value_t = 16)]
         frames: usize,
-        /// Time budget of the recovery by distillation (default: the recipe's 15 minutes).
+        /// Total time budget of the recovery by distillation, shared among the recipe's recover
+        /// passes (default: the recipe's, 19 minutes).
         #[arg(long)]
         recover_minutes: Option<f64>,
         /// Timed runs per model and engine.

@@ -92,16 +92,22 @@ pub(crate) fn last_pass_of(text: &str, name: &str) -> Result<String> {
     Recipe { name: name.into(), description: format!("the last pass of {}", r.name), passes: vec![last] }.to_yaml()
 }
 
-/// `text` with every `recover` pass's time budget set to `minutes` (unchanged when None).
+/// `text` with its recovery's total time budget set to `minutes` (unchanged when None),
+/// shared among its `recover` passes in the recipe's own proportions (a recipe that prunes
+/// in stages recovers after each).
 pub(crate) fn with_recover_minutes(text: &str, minutes: Option<f64>) -> Result<String> {
     let Some(minutes) = minutes else { return Ok(text.to_string()) };
     let mut r = Recipe::parse(text)?;
+    let default = crate::passes::recover::Options::default().minutes;
+    let own = |p: &crate::pipeline::recipe::PassSpec| p.options.get("minutes").and_then(|m| m.as_f64()).unwrap_or(default);
+    let total: f64 = r.passes.iter().filter(|p| p.name == "recover").map(own).sum::<f64>().max(f64::MIN_POSITIVE);
     for p in r.passes.iter_mut().filter(|p| p.name == "recover") {
+        let share = minutes * own(p) / total;
         let mut m = match &p.options {
             yaml_serde::Value::Mapping(m) => m.clone(),
             _ => yaml_serde::Mapping::new(),
         };
-        m.insert("minutes".into(), minutes.into());
+        m.insert("minutes".into(), share.into());
         p.options = yaml_serde::Value::Mapping(m);
     }
     r.to_yaml()
@@ -288,4 +294,20 @@ impl BenchReport {
 /// For `bench`'s CLI summary.
 pub fn out_files(dir: &Path) -> String {
     ["bench.md", "bench.json", "bench.svg", "bench.png"].iter().map(|f| dir.join(f).display().to_string()).collect::<Vec<_>>().join(", ")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn recover_minutes_are_shared_in_the_recipes_proportions() {
+        let text = "name: t\npasses:\n  - prune: {ratio: 0.5}\n  - recover: {minutes: 6, epochs: 300}\n  - prune: {ratio: 0.5}\n  - recover\n";
+        let r = Recipe::parse(&with_recover_minutes(text, Some(2.1)).unwrap()).unwrap();
+        let minutes: Vec<f64> = r.passes.iter().filter(|p| p.name == "recover").map(|p| p.options.get("minutes").unwrap().as_f64().unwrap()).collect();
+        // 6 and the default 15 minutes: 2.1 shared 6:15.
+        assert!((minutes[0] - 0.6).abs() < 1e-9 && (minutes[1] - 1.5).abs() < 1e-9, "{minutes:?}");
+        assert_eq!(r.passes[1].options.get("epochs").unwrap().as_u64(), Some(300));
+        assert_eq!(with_recover_minutes(text, None).unwrap(), text);
+    }
 }
