@@ -5,7 +5,7 @@
 //! over its input channels times kernel taps; with one input channel (the frame) that is 9
 //! terms per output, too few to fill its u8 kernels, while its float NCHWc convolution has a
 //! direct path for it. Measured on the full-size v5 pruned for speed (640x480, 2 cores): the
-//! first convolution (1 -> 8 channels, 3x3) took 4.6 ms as QLinearConv and 0.5 ms as float,
+//! first convolution (1 -> 8 channels, 3x3) took 4.5 ms as QLinearConv and 0.5 ms as float,
 //! yet the whole model got only 2% faster with it float: the frame's quantization and ORT's
 //! NHWC transpose move to the convolution's 8-channel output.
 //!
@@ -33,8 +33,9 @@ use std::collections::HashSet;
 const MIN_SHARE: f64 = 0.03;
 /// Candidates tried, largest share first (each costs two sessions and [`TIMED_RUNS`] pairs).
 const MAX_TRIED: usize = 4;
-/// The whole model must get this much faster (median of interleaved runs) for a layer to go
-/// float: repeated timings of one model differ by 1-2% here, so a smaller gain is noise.
+/// The whole model must get this much faster (median and fastest of interleaved runs) for a
+/// layer to go float: medians of one model's interleaved runs differ by 1-2% here, so a
+/// smaller gain is noise.
 const MIN_GAIN: f64 = 0.03;
 const TIMED_RUNS: usize = 15;
 /// What the plan says of a layer this search keeps float.

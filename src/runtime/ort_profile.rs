@@ -6,15 +6,15 @@
 //! no node of the model belongs to a node ORT made up (a Transpose, a reorder) and is kept
 //! under its own name.
 
-use crate::onnx::proto::ModelProto;
 use super::Runtime;
+use crate::onnx::proto::ModelProto;
 use crate::tensor::Tensor;
 use anyhow::{Context, Result};
 use std::collections::HashMap;
 
 /// Profiled runs after warm-up; the median per kernel is kept.
 const RUNS: usize = 5;
-/// Untimed runs first: the first runs pay for allocation and kernel selection.
+/// Runs left out of the medians: the first runs pay for allocation and kernel selection.
 const WARMUP: usize = 2;
 
 #[derive(Clone, Debug, serde::Serialize)]
