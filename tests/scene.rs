@@ -1,6 +1,7 @@
 //! Scene specialization on the committed trained models: drop-classes is exact, drop-strides
 //! removes a scale and keeps the in-range detections, crop-roi crops every gate map bit for
-//! bit and decodes in frame coordinates (through rknn-legalize's split head too).
+//! bit and decodes in frame coordinates (through rknn-legalize's split head too), and its halos
+//! bring it closer to the full model than zero padding.
 
 mod common;
 use common::*;
@@ -137,6 +138,34 @@ fn cropping_keeps_gate_maps_and_frame_coordinates() {
         assert_eq!(layout["offset"], serde_json::json!([0.0, 64.0]), "{m}: split-head decode offset");
         let meta: Value = serde_json::from_str(&b.metadata_props.iter().find(|p| p.key == "pdi.scene").unwrap().value).unwrap();
         assert_eq!(meta["roi"]["y"], 64);
+    }
+}
+
+#[test]
+fn halos_bring_the_crop_closer_to_the_full_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = frames(dir.path());
+    let scene = write(dir.path(), "roi.yaml", "roi: {x: 0, y: 64, w: 256, h: 128}\n");
+    let prefix = "strip-recon, bind-psf, fold-constants, fold-psf-gates, fold-bn, dce";
+    let zero = write(dir.path(), "zero.yaml", &format!("name: zero\npasses: [{prefix}, {{crop-roi: {{halo: zero}}}}, cleanup]\n"));
+    let halo = write(dir.path(), "halo.yaml", &format!("name: halo\npasses: [{prefix}, crop-roi, cleanup]\n"));
+    let agreement = |j: &Value| j["detection"]["agreement"]["map50_95"].as_f64().unwrap();
+    let worst = |j: &Value| j["outputs"][0]["groups"].as_array().unwrap().iter().map(|g| g["ort"]["rel_l2"].as_f64().unwrap()).fold(0.0, f64::max);
+    for m in MODELS {
+        let model = repo().join("models/trained").join(m);
+        let (full, a, b) = (dir.path().join(format!("{m}.full")), dir.path().join(format!("{m}.zero")), dir.path().join(format!("{m}.halo")));
+        compile(&model, "passes/detect-f32.yaml", None, &full);
+        compile(&model, zero.to_str().unwrap(), Some(&scene), &a);
+        let report = compile(&model, halo.to_str().unwrap(), Some(&scene), &b);
+        let h = &pass(&report, "crop-roi")["details"]["halo"];
+        assert!(h["values"].as_u64().unwrap() > 0, "{m}: no halo added: {h}");
+        let fit = h["rel_error_vs_zero"]["top"].as_f64().unwrap();
+        assert!(fit < 0.6, "{m}: halos no closer than zero padding to the rows above the ROI ({fit:.3})");
+        assert!(h["rel_error_vs_zero"].get("bottom").is_none(), "{m}: a halo at the frame's own border: {h}");
+        let (jz, jh) = (verify(&full.join("model.onnx"), &a.join("model.onnx"), &data), verify(&full.join("model.onnx"), &b.join("model.onnx"), &data));
+        println!("{m}: zero padding agreement {:.4} worst rel L2 {:.3}; halos {:.4} {:.3} (rows' error {fit:.3} of zeros')", agreement(&jz), worst(&jz), agreement(&jh), worst(&jh));
+        assert!(agreement(&jh) > agreement(&jz) + 0.02, "{m}: halos {:.4} against zero padding {:.4}", agreement(&jh), agreement(&jz));
+        assert!(worst(&jh) < worst(&jz), "{m}: worst group error {:.3} with halos, {:.3} without", worst(&jh), worst(&jz));
     }
 }
 

@@ -41,7 +41,7 @@ pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
         "cleanup" => Box::new(cleanup::Cleanup),
         "drop-classes" => Box::new(drop_classes::DropClasses),
         "drop-strides" => Box::new(drop_strides::DropStrides { options: options(spec)? }),
-        "crop-roi" => Box::new(crop_roi::CropRoi),
+        "crop-roi" => Box::new(crop_roi::CropRoi { options: options(spec)? }),
         "prune" => Box::new(prune::Prune { options: options(spec)? }),
         "recover" => Box::new(recover::Recover { options: options(spec)? }),
         "fp16" => Box::new(to_fp16::ToFp16 { options: options(spec)? }),

@@ -12,6 +12,7 @@
 
 pub mod compare;
 pub mod geometry;
+pub mod halo;
 pub mod preview;
 
 use crate::onnx::proto::{ModelProto, StringStringEntryProto};

@@ -30,7 +30,9 @@ pub struct Preview {
 const LOSSLESS: &[&str] = &["promote-constants", "strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce"];
 
 pub fn preview(model: &ModelProto, scene: &Scene, psf: Option<PathBuf>, calib: Option<PathBuf>) -> Result<Preview> {
-    let recipe = |names: &[&str]| Recipe { name: "scene-preview".into(), description: String::new(), passes: names.iter().map(|n| PassSpec { name: n.to_string(), options: yaml_serde::Value::Null }).collect() };
+    // The crop's halos are fitted on two frames: their values do not change the counts.
+    let options = |n: &str| if n == "crop-roi" { yaml_serde::from_str("{frames: 2}").expect("valid YAML") } else { yaml_serde::Value::Null };
+    let recipe = |names: &[&str]| Recipe { name: "scene-preview".into(), description: String::new(), passes: names.iter().map(|n| PassSpec { name: n.to_string(), options: options(n) }).collect() };
     let mut base = model.clone();
     pipeline::run(&recipe(LOSSLESS), &mut base, &PassContext { psf: psf.clone(), calib: calib.clone(), ..Default::default() })?;
     let full = counts(&base)?;
