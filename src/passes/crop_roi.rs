@@ -10,7 +10,7 @@
 //! the frame size; `imgsz` becomes the ROI's.
 //! Where the ROI's edge is not the frame's, every padded convolution and pooling reads a halo
 //! instead of zeros: rows estimated from the crop's own edge, fitted on calibration frames to
-//! the full model's values (`halo: affine`, the default; `mean`; `zero`: no halo; see
+//! the full model's values (`halo: linear`, the default; `mean`; `zero`: no halo; see
 //! [`crate::scene::halo`]). Frames come from `--calib` or the physics pipeline.
 //! Guarantees: every cropped constant equals the full one's crop bit for bit. The outputs are
 //! *not* the full model's: the halos are estimates, and everywhere the bridge's
@@ -41,7 +41,7 @@ pub struct Options {
 
 impl Default for Options {
     fn default() -> Self {
-        Options { halo: Mode::Affine, frames: 64, seed: 0 }
+        Options { halo: Mode::Linear, frames: 64, seed: 0 }
     }
 }
 

@@ -144,6 +144,10 @@ def run_node(n, v):
         hi = v[2] if len(v) > 2 and v[2] is not None else a.get("max")
         return [torch.clamp(v[0], None if lo is None else float(lo), None if hi is None else float(hi))]
     if op == "Concat":
+        # A constant of the graph's batch of 1 (a halo's mean rows) joins the worker's batch.
+        b = max(t.shape[0] for t in v)
+        if a["axis"] % v[0].dim() != 0:
+            v = [t.expand(b, *t.shape[1:]) if t.shape[0] == 1 else t for t in v]
         return [torch.cat(v, a["axis"])]
     if op == "Split":
         return split(v[0], ints(v[1]) if len(v) > 1 and v[1] is not None else None, a, len(n.output))

@@ -5,19 +5,27 @@
 //! trained width-0.25 v5 the head logits' error falls from 0.42 in the ROI's first row to 0.06
 //! sixteen rows (128 pixels) down, far past the one-stride margin `verify` leaves. A halo
 //! puts an estimate of the missing rows (or columns) in place of that padding, computed in the
-//! graph from the crop's own edge: per channel and distance from the edge, a slope times the
-//! edge row plus an intercept per position (`affine`), least-squares fitted on calibration
-//! frames to the full model's own values; `mean` keeps the intercept alone (the rows' average
-//! over the frames). Sides where the ROI meets the frame's border keep their padding: the full
-//! model pads there too, so those stay exact.
+//! graph from the crop's own edge row: each channel at each distance from the edge is a
+//! linear function of every channel of the edge (`linear`: a 1x1 convolution of the edge row)
+//! plus an intercept per position, least-squares fitted on calibration frames to the full
+//! model's own values; `mean` keeps the intercept alone (the rows' average over the frames).
+//! Sides where the ROI meets the frame's border keep their padding: the full model pads there
+//! too, so those stay exact.
 //!
 //! The estimate is right on average, not frame by frame; `recover` trains the rest. Measured on
 //! the lower two thirds of the trained models (200 held-out frames, agreement mAP@0.5:0.95 with
 //! the full model, no recovery): zero padding 0.43 / 0.91 / 0.48 (v5 w0.25 / v8 w0.25 / v5
-//! tiny), mean halos 0.966 / 0.980 / 0.510, affine halos 0.967 / 0.980 / 0.702.
+//! tiny). Fitted on 64 frames of a calibration set (`--calib`): `mean` 0.966 / 0.980 / 0.510, a
+//! slope per channel (tried, not kept) 0.967 / 0.980 / 0.702, `linear` 0.986 / 0.979 / 0.879;
+//! on 64 physics-pipeline frames (no `--calib`): slope 0.950 / 0.980 / 0.612, `linear` 0.980 /
+//! 0.980 / 0.886. The edge's channels together say most of what the rows past it hold:
+//! `linear`'s error on the fitting frames is 0.16-0.22 of zero padding's.
 //!
-//! The halo is a Slice of the edge, a Mul and an Add with constants, and a Concat: operators
-//! every target runs (the NPU included), on rows a few pixels deep.
+//! The halo is a Slice of the edge, a 1x1 Conv, a Reshape, an Add and a Concat per padded value
+//! (a Transpose more for a side column): operators every target runs, on rows a few pixels
+//! deep. They are not free on a CPU: about 150 small nodes on the width-0.25 models, whose crop
+//! ran at 0.90-0.94x of the full model's ORT latency instead of 0.67x (a slope per channel,
+//! one node fewer per value); `halo: zero` keeps that speed.
 
 use crate::ir::{infer, Graph};
 use crate::onnx::attr;
@@ -25,6 +33,7 @@ use crate::onnx::edit::{expose_outputs, fresh_name, sort_topologically};
 use crate::onnx::proto::{GraphProto, ModelProto, NodeProto};
 use crate::onnx::tensor_proto::from_tensor;
 use crate::runtime::ort_runtime::OrtRuntime;
+use crate::prune::ridge::Moments;
 use crate::scene::Roi;
 use crate::tensor::{Tensor, TensorData};
 use anyhow::Result;
@@ -35,12 +44,17 @@ use std::collections::BTreeMap;
 pub enum Mode {
     /// Zero padding, as the crop alone leaves it.
     Zero,
-    /// The rows' average over the calibration frames.
+    /// The rows' average over the calibration frames: a constant Concat, the cheapest.
     Mean,
-    /// A slope on the crop's edge row plus the average's intercept.
+    /// Every channel of the edge row mixed (a 1x1 convolution) plus the average.
     #[default]
-    Affine,
+    Linear,
 }
+
+/// Ridge strength of the linear fit, relative to the edge channels' mean variance: a deep
+/// map's edge has 8 positions per frame at 256x192, 512 samples on 64 frames for up to 256
+/// channels, so the system needs some pull towards the mean.
+const RIDGE: f64 = 1e-3;
 
 /// Sides in ONNX `pads` order: top, left, bottom, right.
 const SIDES: [&str; 4] = ["top", "left", "bottom", "right"];
@@ -63,26 +77,26 @@ struct Place {
     outside: [usize; 4],
 }
 
-/// Sums over the calibration frames for one side of one value: the strip of `depth` rows (or
-/// columns) past the edge, at each position `along` it, against the edge row itself.
+/// The calibration frames' values for one side of one value: the strip of `depth` rows (or
+/// columns) past the edge, at each position `along` it, and the edge row itself.
 struct Strip {
     depth: usize,
     /// Range of the other axis covered: for rows, the crop's columns; for columns, the crop's
     /// rows extended by the row halos (the corners are estimated too).
     along: (usize, usize),
-    sy: Vec<f64>,
-    syy: Vec<f64>,
-    syr: Vec<f64>,
-    sr: Vec<f64>,
-    srr: Vec<f64>,
+    /// Per frame: the edge, [C][T]; the strip, [C][depth][T] (depth 0 next to the edge).
+    edge: Vec<f32>,
+    past: Vec<f32>,
 }
 
-/// The fitted estimate of one strip: slope per (channel, depth), intercept per position.
+/// The fitted estimate of one strip: `mix` [(C * depth) x C] on the edge (zero for `mean`),
+/// plus `intercept` [C][depth][T].
 struct Fit {
-    slope: Vec<f32>,
+    mix: Vec<f64>,
     intercept: Vec<f32>,
-    /// Error of the estimate against the true rows, relative to zero padding's error.
-    rel_error: f64,
+    /// Squared error of the estimate and of zero padding against the true rows.
+    error: f64,
+    zero_error: f64,
 }
 
 pub struct Report {
@@ -138,18 +152,17 @@ pub fn add(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [usize;
                 continue;
             }
             let along = if s % 2 == 0 { (p.begin[1], p.begin[1] + p.len[1]) } else { (p.begin[0] - d[0], p.begin[0] + p.len[0] + d[2]) };
-            let cells = p.channels * (along.1 - along.0);
-            strips.insert((v.to_string(), s), Strip { depth: d[s], along, sy: vec![0.0; cells * d[s]], syy: vec![0.0; cells * d[s]], syr: vec![0.0; cells * d[s]], sr: vec![0.0; cells], srr: vec![0.0; cells] });
+            strips.insert((v.to_string(), s), Strip { depth: d[s], along, edge: Vec::new(), past: Vec::new() });
         }
     }
     collect(full, frames, &places, &mut strips, threads)?;
     let mut fits: BTreeMap<(String, usize), Fit> = BTreeMap::new();
     let mut sums: BTreeMap<&'static str, (f64, f64)> = BTreeMap::new();
     for (key, strip) in &strips {
-        let f = fit(strip, places[&key.0].channels, frames.len(), mode);
+        let f = fit(strip, places[&key.0].channels, mode);
         let e = sums.entry(SIDES[key.1]).or_default();
-        e.0 += f.rel_error.powi(2) * zero_error(strip);
-        e.1 += zero_error(strip);
+        e.0 += f.error;
+        e.1 += f.zero_error;
         fits.insert(key.clone(), f);
     }
     report.rel_error = sums.into_iter().map(|(s, (a, b))| (s, (a / b.max(1e-300)).sqrt())).collect();
@@ -208,71 +221,69 @@ fn collect(full: &ModelProto, frames: &[Vec<(String, Tensor)>], places: &BTreeMa
     Ok(())
 }
 
-/// Adds one frame's strip (rows or columns past side `s`) and edge to the sums.
+/// Appends one frame's edge and strip (rows or columns past side `s`).
 fn accumulate(strip: &mut Strip, s: usize, p: &Place, data: &[f32]) {
     let (h, w) = (p.full[0], p.full[1]);
-    let at = |c: usize, y: usize, x: usize| data[(c * h + y) * w + x] as f64;
     let rows = s % 2 == 0;
-    let n_along = strip.along.1 - strip.along.0;
+    let at = |c: usize, k: usize, a: usize| if rows { data[(c * h + k) * w + a] } else { data[(c * h + a) * w + k] };
     // The edge's index on the strip's axis, and the index `j` steps past it.
     let edge = match s {
         0 | 1 => p.begin[s],
         _ => p.begin[s - 2] + p.len[s - 2] - 1,
     };
     let past = |j: usize| if s < 2 { edge - 1 - j } else { edge + 1 + j };
+    let along = strip.along.0..strip.along.1;
     for c in 0..p.channels {
-        for t in 0..n_along {
-            let a = strip.along.0 + t;
-            let value = |k: usize| if rows { at(c, k, a) } else { at(c, a, k) };
-            let r = value(edge);
-            let cell = c * n_along + t;
-            strip.sr[cell] += r;
-            strip.srr[cell] += r * r;
-            for j in 0..strip.depth {
-                let y = value(past(j));
-                let k = (c * strip.depth + j) * n_along + t;
-                strip.sy[k] += y;
-                strip.syy[k] += y * y;
-                strip.syr[k] += y * r;
-            }
-        }
-    }
-}
-
-/// Zero padding's squared error over a strip: the sum of its squared true values.
-fn zero_error(strip: &Strip) -> f64 {
-    strip.syy.iter().sum()
-}
-
-/// The least-squares estimate of a strip: per (channel, depth) one slope on the edge, pooled
-/// over positions after each position's mean is removed; per position an intercept.
-fn fit(strip: &Strip, channels: usize, frames: usize, mode: Mode) -> Fit {
-    let n = frames.max(1) as f64;
-    let n_along = strip.along.1 - strip.along.0;
-    let mut slope = vec![0f32; channels * strip.depth];
-    let mut intercept = vec![0f32; channels * strip.depth * n_along];
-    let mut residual = 0.0;
-    for c in 0..channels {
+        strip.edge.extend(along.clone().map(|a| at(c, edge, a)));
         for j in 0..strip.depth {
-            let (mut cov, mut var) = (0.0, 0.0);
-            for t in 0..n_along {
-                let (cell, k) = (c * n_along + t, (c * strip.depth + j) * n_along + t);
-                cov += strip.syr[k] - strip.sy[k] * strip.sr[cell] / n;
-                var += strip.srr[cell] - strip.sr[cell] * strip.sr[cell] / n;
-            }
-            // A flat edge (a dead channel) carries nothing to regress on.
-            let a = if mode == Mode::Affine && var > 1e-12 * n * n_along as f64 { cov / var } else { 0.0 };
-            slope[c * strip.depth + j] = a as f32;
-            for t in 0..n_along {
-                let (cell, k) = (c * n_along + t, (c * strip.depth + j) * n_along + t);
-                let b = (strip.sy[k] - a * strip.sr[cell]) / n;
-                intercept[k] = b as f32;
-                // Sum over frames of (y - a r - b)^2, from the sums.
-                residual += strip.syy[k] - 2.0 * a * strip.syr[k] - 2.0 * b * strip.sy[k] + a * a * strip.srr[cell] + 2.0 * a * b * strip.sr[cell] + b * b * n;
+            strip.past.extend(along.clone().map(|a| at(c, past(j), a)));
+        }
+    }
+}
+
+/// The least-squares estimate of a strip from its edge: each (channel, depth) of the strip a
+/// linear function of every channel of the edge (`Linear`) or a constant (`Mean`), with an
+/// intercept per position: the fit runs on values centred per position, so a position's
+/// average (a column under the vignetting, a gate map's slope) is the intercept's, and the
+/// mix carries only what varies from frame to frame.
+fn fit(strip: &Strip, channels: usize, mode: Mode) -> Fit {
+    let t = strip.along.1 - strip.along.0;
+    let (c, m) = (channels, channels * strip.depth);
+    let frames = strip.edge.len() / (c * t).max(1);
+    let n = frames.max(1) as f64;
+    let edge = |f: usize, ch: usize, x: usize| strip.edge[(f * c + ch) * t + x] as f64;
+    let past = |f: usize, k: usize, x: usize| strip.past[(f * m + k) * t + x] as f64;
+    let edge_mean: Vec<f64> = (0..c * t).map(|i| (0..frames).map(|f| edge(f, i / t, i % t)).sum::<f64>() / n).collect();
+    let past_mean: Vec<f64> = (0..m * t).map(|i| (0..frames).map(|f| past(f, i / t, i % t)).sum::<f64>() / n).collect();
+    let mut mix = vec![0.0; m * c];
+    if mode == Mode::Linear && frames >= 2 {
+        let mut moments = Moments::new(c, m);
+        let xs: Vec<Vec<f64>> = (0..c).map(|ch| (0..frames * t).map(|i| edge(i / t, ch, i % t) - edge_mean[ch * t + i % t]).collect()).collect();
+        let ts: Vec<Vec<f64>> = (0..m).map(|k| (0..frames * t).map(|i| past(i / t, k, i % t) - past_mean[k * t + i % t]).collect()).collect();
+        moments.add_columns(&xs, &ts);
+        if let Some((mm, _)) = moments.solve(RIDGE, None) {
+            mix = mm;
+        }
+    }
+    let mut intercept = vec![0f32; m * t];
+    for k in 0..m {
+        for x in 0..t {
+            let b = past_mean[k * t + x] - (0..c).map(|ch| mix[k * c + ch] * edge_mean[ch * t + x]).sum::<f64>();
+            intercept[k * t + x] = b as f32;
+        }
+    }
+    let (mut error, mut zero_error) = (0.0, 0.0);
+    for f in 0..frames {
+        for k in 0..m {
+            for x in 0..t {
+                let y = past(f, k, x);
+                let est = intercept[k * t + x] as f64 + (0..c).map(|ch| mix[k * c + ch] * edge(f, ch, x)).sum::<f64>();
+                error += (y - est) * (y - est);
+                zero_error += y * y;
             }
         }
     }
-    Fit { slope, intercept, rel_error: (residual.max(0.0) / zero_error(strip).max(1e-300)).sqrt() }
+    Fit { mix, intercept, error, zero_error }
 }
 
 /// Writes the nodes that pad `read.value` with its halos (rows, then columns) and returns the
@@ -302,32 +313,44 @@ fn emit(g: &mut GraphProto, read: &Read, p: &Place, strips: &BTreeMap<(String, u
             let mut shape = vec![1, p.channels, 0, 0];
             shape[axis] = d;
             shape[5 - axis] = len;
-            let mut b = vec![0f32; p.channels * d * len];
-            let mut a = vec![0f32; p.channels * d];
-            for c in 0..p.channels {
+            let c_in = p.channels;
+            let mut b = vec![0f32; c_in * d * len];
+            // The 1x1 convolution's weight: output channel c * d + r is row r of channel c.
+            let mut w = vec![0f32; c_in * d * c_in];
+            for c in 0..c_in {
                 for r in 0..d {
-                    let j = depth_at(r);
-                    a[c * d + r] = f.slope[c * strip.depth + j];
+                    let k = c * strip.depth + depth_at(r);
+                    for ch in 0..c_in {
+                        w[(c * d + r) * c_in + ch] = f.mix[k * c_in + ch] as f32;
+                    }
                     for t in 0..len {
-                        let v = f.intercept[(c * strip.depth + j) * n_along + skip + t];
                         let at = if axis == 2 { (c * d + r) * len + t } else { (c * len + t) * d + r };
-                        b[at] = v;
+                        b[at] = f.intercept[k * n_along + skip + t];
                     }
                 }
             }
             let tag = format!("{}_halo_{}", read.value, SIDES[s]);
             let rows = constant(g, &format!("{tag}_intercept"), shape.clone(), b);
-            let part = if mode == Mode::Affine {
+            let part = if mode == Mode::Linear {
                 let edge_at = if s == before { 0 } else { extent[axis - 2] as i64 - 1 };
-                let starts = constant_i64(g, &format!("{tag}_start"), edge_at);
-                let ends = constant_i64(g, &format!("{tag}_end"), edge_at + 1);
-                let axes = constant_i64(g, &format!("{tag}_axis"), axis as i64);
-                let mut slope_shape = vec![1, p.channels, 1, 1];
-                slope_shape[axis] = d;
-                let slope = constant(g, &format!("{tag}_slope"), slope_shape, a);
+                let starts = constant_i64s(g, &format!("{tag}_start"), vec![edge_at]);
+                let ends = constant_i64s(g, &format!("{tag}_end"), vec![edge_at + 1]);
+                let axes = constant_i64s(g, &format!("{tag}_axis"), vec![axis as i64]);
+                let weight = constant(g, &format!("{tag}_mix"), vec![c_in * d, c_in, 1, 1], w);
                 let edge = node(g, "Slice", &format!("{tag}_edge"), vec![cur.clone(), starts, ends, axes], vec![]);
-                let scaled = node(g, "Mul", &format!("{tag}_scaled"), vec![edge, slope], vec![]);
-                node(g, "Add", &tag, vec![scaled, rows], vec![])
+                let mixed = node(g, "Conv", &format!("{tag}_mixed"), vec![edge, weight], vec![attr::make_ints("kernel_shape", vec![1, 1])]);
+                // [N, C * d, 1, len] or [N, C * d, len, 1] -> [N, C, d, len] (-> [N, C, len, d]);
+                // one row deep (a 3x3 kernel's halo) it already is: a node costs ORT ~10 us.
+                let mut est = mixed;
+                if d > 1 {
+                    // Batch 0: the input's own (1 here; the recovery worker's batches elsewhere).
+                    let target = constant_i64s(g, &format!("{tag}_shape"), vec![0, c_in as i64, d as i64, len as i64]);
+                    est = node(g, "Reshape", &format!("{tag}_rows"), vec![est, target], vec![]);
+                    if axis == 3 {
+                        est = node(g, "Transpose", &format!("{tag}_columns"), vec![est], vec![attr::make_ints("perm", vec![0, 1, 3, 2])]);
+                    }
+                }
+                node(g, "Add", &tag, vec![est, rows], vec![])
             } else {
                 rows
             };
@@ -349,9 +372,9 @@ fn constant(g: &mut GraphProto, base: &str, shape: Vec<usize>, v: Vec<f32>) -> S
     name
 }
 
-fn constant_i64(g: &mut GraphProto, base: &str, v: i64) -> String {
+fn constant_i64s(g: &mut GraphProto, base: &str, v: Vec<i64>) -> String {
     let name = fresh_name(g, base);
-    g.initializer.push(from_tensor(&name, &Tensor::new(vec![1], TensorData::I64(vec![v]))));
+    g.initializer.push(from_tensor(&name, &Tensor::new(vec![v.len()], TensorData::I64(v))));
     name
 }
 
@@ -360,4 +383,42 @@ fn node(g: &mut GraphProto, op: &str, base: &str, input: Vec<String>, attribute:
     let out = fresh_name(g, base);
     g.node.push(NodeProto { name: out.clone(), op_type: op.into(), input, output: vec![out.clone()], attribute, ..Default::default() });
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Rows that are an exact linear function of the edge (plus a per-position offset) are
+    /// fitted exactly, with the mix and the intercept where `emit` reads them.
+    #[test]
+    fn linear_fit_recovers_an_exact_relation() {
+        let (c, depth, t, frames) = (3usize, 2usize, 5usize, 40usize);
+        let mix = |k: usize, ch: usize| ((k * 7 + ch * 3) % 5) as f64 * 0.25 - 0.5;
+        let offset = |k: usize, x: usize| (k + x) as f64 * 0.1;
+        let mut rng = crate::optics::rng::Rng::new(7);
+        let mut strip = Strip { depth, along: (2, 2 + t), edge: Vec::new(), past: Vec::new() };
+        for _ in 0..frames {
+            let e: Vec<f64> = (0..c * t).map(|_| rng.normal()).collect();
+            strip.edge.extend(e.iter().map(|&v| v as f32));
+            for k in 0..c * depth {
+                for x in 0..t {
+                    let v = offset(k, x) + (0..c).map(|ch| mix(k, ch) * e[ch * t + x]).sum::<f64>();
+                    strip.past.push(v as f32);
+                }
+            }
+        }
+        let f = fit(&strip, c, Mode::Linear);
+        assert!(f.error < 1e-4 * f.zero_error, "error {} of {}", f.error, f.zero_error);
+        for k in 0..c * depth {
+            for ch in 0..c {
+                assert!((f.mix[k * c + ch] - mix(k, ch)).abs() < 1e-3, "mix[{k}][{ch}] = {}", f.mix[k * c + ch]);
+            }
+            for x in 0..t {
+                assert!((f.intercept[k * t + x] as f64 - offset(k, x)).abs() < 1e-3);
+            }
+        }
+        let mean = fit(&strip, c, Mode::Mean);
+        assert!(mean.mix.iter().all(|&m| m == 0.0) && mean.error > 100.0 * f.error);
+    }
 }
