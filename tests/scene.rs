@@ -167,6 +167,20 @@ fn halos_bring_the_crop_closer_to_the_full_model() {
         assert!(agreement(&jh) > agreement(&jz) + 0.02, "{m}: halos {:.4} against zero padding {:.4}", agreement(&jh), agreement(&jz));
         assert!(worst(&jh) < worst(&jz), "{m}: worst group error {:.3} with halos, {:.3} without", worst(&jh), worst(&jz));
     }
+    // A ROI inside the frame: halos on all four sides (columns over the row halos' corners).
+    let boxed = write(dir.path(), "box.yaml", "roi: {x: 64, y: 64, w: 128, h: 96}\n");
+    let model = repo().join("models/trained").join(MODELS[1]);
+    let full = dir.path().join(format!("{}.full", MODELS[1]));
+    let (a, b) = (dir.path().join("box.zero"), dir.path().join("box.halo"));
+    compile(&model, zero.to_str().unwrap(), Some(&boxed), &a);
+    let report = compile(&model, halo.to_str().unwrap(), Some(&boxed), &b);
+    let h = &pass(&report, "crop-roi")["details"]["halo"]["rel_error_vs_zero"];
+    for side in ["top", "left", "bottom", "right"] {
+        assert!(h[side].as_f64().is_some_and(|e| e < 0.8), "side {side}: {h}");
+    }
+    let (jz, jh) = (verify(&full.join("model.onnx"), &a.join("model.onnx"), &data), verify(&full.join("model.onnx"), &b.join("model.onnx"), &data));
+    println!("box ROI: worst rel L2 {:.3} with zero padding, {:.3} with halos", worst(&jz), worst(&jh));
+    assert!(worst(&jh) < 0.8 * worst(&jz), "box ROI: worst group error {:.3} with halos, {:.3} without", worst(&jh), worst(&jz));
 }
 
 #[test]

@@ -77,9 +77,9 @@ const BEFORE_SCENE: &[&str] = &["promote-constants", "strip-recon", "bind-psf", 
 impl Recipe {
     /// The recipe with the passes `scene` asks for (drop-classes, drop-strides, crop-roi, in
     /// that order) inserted where they belong (the crop without halos when the recipe prunes).
-    /// No recovery is added after a crop: with its
-    /// halos the crop agrees better without it (8 minutes on physics frames took the v5 from
-    /// 0.980 to 0.963 and the tiny from 0.886 to 0.844, and left the v8 at 0.980).
+    /// No recovery is added after a crop: with its halos the crop agrees better without it
+    /// (8 minutes on physics frames took the v5 from 0.980 to 0.963 and the tiny from 0.886
+    /// to 0.844, and left the v8 at 0.980).
     pub fn with_scene(&self, scene: &crate::scene::Scene) -> Result<Recipe> {
         let wanted: Vec<&str> = [("drop-classes", scene.classes.is_some()), ("drop-strides", scene.object_px.is_some()), ("crop-roi", scene.roi.is_some())]
             .into_iter()
@@ -95,7 +95,7 @@ impl Recipe {
             bail!("scene specialization needs constant decode shapes: the pipeline must run fold-constants before {}", self.passes.get(at).map_or("its end", |p| p.name.as_str()));
         }
         // Before pruning the crop keeps zero padding: pruning cannot follow a halo's 1x1
-        // convolution and Reshape between a value's channels (the v5 w0.25 with all three keys
+        // convolution between a value's channels (the v5 w0.25 with all three keys
         // pruned to 0.90x of the crop instead of 0.28x), and the pruned recipe's recovery
         // distills the crop from the full model anyway.
         let prunes = self.passes.iter().any(|p| p.name == "prune");

@@ -56,6 +56,11 @@ pub enum Mode {
 /// channels, so the system needs some pull towards the mean.
 const RIDGE: f64 = 1e-3;
 
+/// The most weights one strip's mix may have (its Gram and cross moments are as large, in
+/// f64): a 512-channel map's one-row halo has 262,144; past the bound (an untrusted model's
+/// huge channel count or padding) the strip falls back to the mean.
+const MAX_MIX: usize = 1 << 22;
+
 /// Sides in ONNX `pads` order: top, left, bottom, right.
 const SIDES: [&str; 4] = ["top", "left", "bottom", "right"];
 
@@ -256,7 +261,7 @@ fn fit(strip: &Strip, channels: usize, mode: Mode) -> Fit {
     let edge_mean: Vec<f64> = (0..c * t).map(|i| (0..frames).map(|f| edge(f, i / t, i % t)).sum::<f64>() / n).collect();
     let past_mean: Vec<f64> = (0..m * t).map(|i| (0..frames).map(|f| past(f, i / t, i % t)).sum::<f64>() / n).collect();
     let mut mix = vec![0.0; m * c];
-    if mode == Mode::Linear && frames >= 2 {
+    if mode == Mode::Linear && frames >= 2 && m * c <= MAX_MIX {
         let mut moments = Moments::new(c, m);
         let xs: Vec<Vec<f64>> = (0..c).map(|ch| (0..frames * t).map(|i| edge(i / t, ch, i % t) - edge_mean[ch * t + i % t]).collect()).collect();
         let ts: Vec<Vec<f64>> = (0..m).map(|k| (0..frames * t).map(|i| past(i / t, k, i % t) - past_mean[k * t + i % t]).collect()).collect();
@@ -331,7 +336,7 @@ fn emit(g: &mut GraphProto, read: &Read, p: &Place, strips: &BTreeMap<(String, u
             }
             let tag = format!("{}_halo_{}", read.value, SIDES[s]);
             let rows = constant(g, &format!("{tag}_intercept"), shape.clone(), b);
-            let part = if mode == Mode::Linear {
+            let part = if mode == Mode::Linear && f.mix.iter().any(|&v| v != 0.0) {
                 let edge_at = if s == before { 0 } else { extent[axis - 2] as i64 - 1 };
                 let starts = constant_i64s(g, &format!("{tag}_start"), vec![edge_at]);
                 let ends = constant_i64s(g, &format!("{tag}_end"), vec![edge_at + 1]);
