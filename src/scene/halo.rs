@@ -21,11 +21,12 @@
 //! 0.980 / 0.886. The edge's channels together say most of what the rows past it hold:
 //! `linear`'s error on the fitting frames is 0.16-0.22 of zero padding's.
 //!
-//! The halo is a Slice of the edge, a 1x1 Conv, a Reshape, an Add and a Concat per padded value
-//! (a Transpose more for a side column): operators every target runs, on rows a few pixels
-//! deep. They are not free on a CPU: about 150 small nodes on the width-0.25 models, whose crop
-//! ran at 0.90-0.94x of the full model's ORT latency instead of 0.67x (a slope per channel,
-//! one node fewer per value); `halo: zero` keeps that speed.
+//! The halo is a Slice of the edge, a 1x1 Conv, an Add and a Concat per padded value (a
+//! Reshape more for a halo deeper than one row, and a Transpose for side columns): operators
+//! every target runs, on rows a few pixels deep. They are not free on a CPU: 150-175 small
+//! nodes on the trained models, whose crop ran at 0.91-0.99x of the full model's ORT latency
+//! at 256x192 instead of 0.67x (full-size v5 at 640x480: 0.742x against 0.661x); `halo: zero`
+//! keeps that speed.
 
 use crate::ir::{infer, Graph};
 use crate::onnx::attr;
@@ -173,7 +174,7 @@ pub fn add(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [usize;
     report.rel_error = sums.into_iter().map(|(s, (a, b))| (s, (a / b.max(1e-300)).sqrt())).collect();
     for (read, consumers) in &reads {
         let p = places[&read.value];
-        let padded = emit(g, read, &p, &strips, &fits, mode);
+        let padded = emit(g, read, &p, &strips, &fits);
         for &i in consumers {
             let n = &mut g.node[i];
             n.input[0] = padded.clone();
@@ -204,7 +205,7 @@ fn place(inf: &crate::ir::Inferred, value: &str, roi: Roi, frame: [usize; 2]) ->
     Some(Place { channels: s[1], full: [s[2], s[3]], begin, len, outside: [begin[0], begin[1], s[2] - begin[0] - len[0], s[3] - begin[1] - len[1]] })
 }
 
-/// Runs the full model on the frames with every halo'd value exposed, and sums each strip.
+/// Runs the full model on the frames with every halo'd value exposed, and keeps each strip's values.
 fn collect(full: &ModelProto, frames: &[Vec<(String, Tensor)>], places: &BTreeMap<String, Place>, strips: &mut BTreeMap<(String, usize), Strip>, threads: usize) -> Result<()> {
     let names: Vec<String> = places.keys().cloned().collect();
     let mut rt = OrtRuntime::with_options(&expose_outputs(full, &names), ort::session::builder::GraphOptimizationLevel::Level1, threads)?;
@@ -293,7 +294,7 @@ fn fit(strip: &Strip, channels: usize, mode: Mode) -> Fit {
 
 /// Writes the nodes that pad `read.value` with its halos (rows, then columns) and returns the
 /// padded value's name.
-fn emit(g: &mut GraphProto, read: &Read, p: &Place, strips: &BTreeMap<(String, usize), Strip>, fits: &BTreeMap<(String, usize), Fit>, mode: Mode) -> String {
+fn emit(g: &mut GraphProto, read: &Read, p: &Place, strips: &BTreeMap<(String, usize), Strip>, fits: &BTreeMap<(String, usize), Fit>) -> String {
     let mut cur = read.value.clone();
     // Rows: [1, C, h, w] -> [1, C, top + h + bottom, w]; columns after, over the new rows.
     let mut extent = p.len;
@@ -336,7 +337,8 @@ fn emit(g: &mut GraphProto, read: &Read, p: &Place, strips: &BTreeMap<(String, u
             }
             let tag = format!("{}_halo_{}", read.value, SIDES[s]);
             let rows = constant(g, &format!("{tag}_intercept"), shape.clone(), b);
-            let part = if mode == Mode::Linear && f.mix.iter().any(|&v| v != 0.0) {
+            // A fit with no mix (`mean`, or past MAX_MIX) is its constant rows alone.
+            let part = if f.mix.iter().any(|&v| v != 0.0) {
                 let edge_at = if s == before { 0 } else { extent[axis - 2] as i64 - 1 };
                 let starts = constant_i64s(g, &format!("{tag}_start"), vec![edge_at]);
                 let ends = constant_i64s(g, &format!("{tag}_end"), vec![edge_at + 1]);
