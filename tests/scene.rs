@@ -162,6 +162,9 @@ fn halos_bring_the_crop_closer_to_the_full_model() {
         let fit = h["rel_error_vs_zero"]["top"].as_f64().unwrap();
         assert!(fit < 0.6, "{m}: halos no closer than zero padding to the rows above the ROI ({fit:.3})");
         assert!(h["rel_error_vs_zero"].get("bottom").is_none(), "{m}: a halo at the frame's own border: {h}");
+        // The bridge's squeeze-excitation pooling: the frame's means estimated from the ROI's.
+        let pools = h["pools"].as_array().unwrap();
+        assert!(!pools.is_empty() && pools.iter().all(|p| p["rel_error"].as_f64().unwrap() < 0.5), "{m}: {h}");
         let (jz, jh) = (verify(&full.join("model.onnx"), &a.join("model.onnx"), &data), verify(&full.join("model.onnx"), &b.join("model.onnx"), &data));
         println!("{m}: zero padding agreement {:.4} worst rel L2 {:.3}; halos {:.4} {:.3} (rows' error {fit:.3} of zeros')", agreement(&jz), worst(&jz), agreement(&jh), worst(&jh));
         assert!(agreement(&jh) > agreement(&jz) + 0.02, "{m}: halos {:.4} against zero padding {:.4}", agreement(&jh), agreement(&jz));
@@ -178,9 +181,15 @@ fn halos_bring_the_crop_closer_to_the_full_model() {
     for side in ["top", "left", "bottom", "right"] {
         assert!(h[side].as_f64().is_some_and(|e| e < 0.8), "side {side}: {h}");
     }
-    let (jz, jh) = (verify(&full.join("model.onnx"), &a.join("model.onnx"), &data), verify(&full.join("model.onnx"), &b.join("model.onnx"), &data));
-    println!("box ROI: worst rel L2 {:.3} with zero padding, {:.3} with halos", worst(&jz), worst(&jh));
+    // Halos two rows in: a (2 x 1) convolution whose taps run the other way on the far sides.
+    let two = write(dir.path(), "two.yaml", &format!("name: two\npasses: [{prefix}, {{crop-roi: {{halo_rows: 2}}}}, cleanup]\n"));
+    let c = dir.path().join("box.two");
+    compile(&model, two.to_str().unwrap(), Some(&boxed), &c);
+    let full = full.join("model.onnx");
+    let (jz, jh, j2) = (verify(&full, &a.join("model.onnx"), &data), verify(&full, &b.join("model.onnx"), &data), verify(&full, &c.join("model.onnx"), &data));
+    println!("box ROI: worst rel L2 {:.3} with zero padding, {:.3} with halos, {:.3} two rows in", worst(&jz), worst(&jh), worst(&j2));
     assert!(worst(&jh) < 0.8 * worst(&jz), "box ROI: worst group error {:.3} with halos, {:.3} without", worst(&jh), worst(&jz));
+    assert!(worst(&j2) < 0.8 * worst(&jz), "box ROI: worst group error {:.3} with 2-row halos, {:.3} without", worst(&j2), worst(&jz));
 }
 
 #[test]

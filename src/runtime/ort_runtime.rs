@@ -85,7 +85,9 @@ impl OrtRuntime {
             values.push((name.clone(), to_ort(t).with_context(|| format!("input {name}"))?));
         }
         let names = self.output_names();
-        let outputs = self.session.run(values).map_err(|e| anyhow!("ONNX Runtime failed: {e}"))?;
+        // Inputs are lent, not given: an output that is a graph input (a halo's fit exposes
+        // the image) is ORT's view of the input's buffer, which must outlive the outputs.
+        let outputs = self.session.run(lend(&values)).map_err(|e| anyhow!("ONNX Runtime failed: {e}"))?;
         let mut seen: Vec<(&str, &[f32])> = Vec::new();
         for n in &names {
             if let Some(Ok((_, data))) = outputs.get(n).map(|v| v.try_extract_tensor::<f32>()) {
@@ -107,7 +109,9 @@ impl Runtime for OrtRuntime {
             values.push((name.clone(), to_ort(t).with_context(|| format!("input {name}"))?));
         }
         let names = self.output_names();
-        let outputs = self.session.run(values).map_err(|e| anyhow!("ONNX Runtime failed: {e}"))?;
+        // Inputs are lent, not given: an output that is a graph input (a halo's fit exposes
+        // the image) is ORT's view of the input's buffer, which must outlive the outputs.
+        let outputs = self.session.run(lend(&values)).map_err(|e| anyhow!("ONNX Runtime failed: {e}"))?;
         names
             .into_iter()
             .map(|n| {
@@ -117,6 +121,10 @@ impl Runtime for OrtRuntime {
             })
             .collect()
     }
+}
+
+fn lend(values: &[(String, DynValue)]) -> Vec<(&str, &DynValue)> {
+    values.iter().map(|(n, v)| (n.as_str(), v)).collect()
 }
 
 fn to_ort(t: &Tensor) -> Result<DynValue> {
@@ -186,4 +194,37 @@ fn from_ort(v: &DynValue) -> Result<Tensor> {
 
 fn dims(shape: &ort::value::Shape) -> Vec<usize> {
     shape.iter().map(|&d| d.max(0) as usize).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::onnx::edit::tensor_value_info;
+    use crate::onnx::proto::{GraphProto, NodeProto, OperatorSetIdProto};
+    use crate::tensor::DType;
+
+    /// An output that is the graph's own input comes back as the input, run after run. ORT
+    /// hands it out as a view of the input's buffer; before inputs were lent, that buffer was
+    /// freed before the outputs were read (4 MiB: the allocator unmaps it, so a read crashes).
+    #[test]
+    fn an_input_exposed_as_an_output_reads_back_intact() {
+        let n = 1 << 20;
+        let graph = GraphProto {
+            node: vec![NodeProto { op_type: "Relu".into(), input: vec!["x".into()], output: vec!["y".into()], ..Default::default() }],
+            input: vec![tensor_value_info("x", DType::F32, &[1, n])],
+            output: vec![tensor_value_info("x", DType::F32, &[1, n]), tensor_value_info("y", DType::F32, &[1, n])],
+            ..Default::default()
+        };
+        let model = ModelProto { ir_version: 8, opset_import: vec![OperatorSetIdProto { domain: String::new(), version: 17 }], graph: Some(graph), ..Default::default() };
+        let mut rt = OrtRuntime::new(&model).unwrap();
+        for run in 0..4 {
+            let v: Vec<f32> = (0..n).map(|i| ((i + run * 7) % 13) as f32 - 6.0).collect();
+            let feed = vec![("x".to_string(), Tensor::f32(vec![1, n], v.clone()))];
+            let seen = rt.visit_f32(&feed, |seen| seen.iter().map(|(name, d)| (name.to_string(), d.to_vec())).collect::<Vec<_>>()).unwrap();
+            let x = &seen.iter().find(|(name, _)| name == "x").expect("x is an output").1;
+            assert!(x == &v, "run {run}: the input read back changed");
+            let out = rt.run(&feed).unwrap();
+            assert_eq!(out.iter().find(|(name, _)| name == "x").unwrap().1.as_f32().unwrap(), &v[..], "run {run}: Runtime::run");
+        }
+    }
 }

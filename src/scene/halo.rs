@@ -6,25 +6,25 @@
 //! sixteen rows (128 pixels) down, far past the one-stride margin `verify` leaves. A halo
 //! puts an estimate of the missing rows (or columns) in place of that padding, computed in the
 //! graph from the crop's own edge row: each channel at each distance from the edge is a
-//! linear function of every channel of the edge (`linear`: a 1x1 convolution of the edge row)
-//! plus an intercept per position, least-squares fitted on calibration frames to the full
+//! linear function of every channel of the edge (`linear`: a 1x1 convolution of the edge row;
+//! `rows` > 1 reads that many rows in, a (rows x 1) convolution) plus an intercept per position, least-squares fitted on calibration frames to the full
 //! model's own values; `mean` keeps the intercept alone (the rows' average over the frames).
 //! Sides where the ROI meets the frame's border keep their padding: the full model pads there
 //! too, so those stay exact.
 //!
-//! The estimate is right on average, not frame by frame; `recover` trains the rest. Measured on
-//! the lower two thirds of the trained models (200 held-out frames, agreement mAP@0.5:0.95 with
-//! the full model, no recovery): zero padding 0.43 / 0.91 / 0.48 (v5 w0.25 / v8 w0.25 / v5
-//! tiny). Fitted on 64 frames of a calibration set (`--calib`): `mean` 0.966 / 0.980 / 0.510, a
-//! slope per channel (tried, not kept) 0.967 / 0.980 / 0.702, `linear` 0.986 / 0.979 / 0.879;
-//! on 64 physics-pipeline frames (no `--calib`): slope 0.950 / 0.980 / 0.612, `linear` 0.980 /
-//! 0.980 / 0.886. The edge's channels together say most of what the rows past it hold:
-//! `linear`'s error on the fitting frames is 0.16-0.22 of zero padding's.
+//! The estimate is right on average, not frame by frame. Measured on the lower two thirds of
+//! the trained models (200 held-out frames, agreement mAP@0.5:0.95 with the full model, no
+//! recovery; v5 w0.25 / v8 w0.25 / v5 tiny): zero padding 0.43 / 0.91 / 0.48; `linear` from
+//! the edge row, with [`super::pool`]'s correction, fitted on 64 physics-pipeline frames: 0.986
+//! / 0.980 / 0.906 (fitting frames drawn with another seed: 0.985 / 0.980 / 0.894). The edge's
+//! channels together say most of what the rows past it hold: the error on the fitting frames
+//! is 0.14-0.18 of zero padding's. A slope per channel instead of the mix (tried) lost 0.03 /
+//! 0.00 / 0.27 of agreement.
 //!
-//! The halo is a Slice of the edge, a 1x1 Conv, an Add and a Concat per padded value (a
+//! The halo is a Slice of the edge, a Conv, an Add and a Concat per padded value (a
 //! Reshape more for a halo deeper than one row, and a Transpose for side columns): operators
 //! every target runs, on rows a few pixels deep. They are not free on a CPU: 150-175 small
-//! nodes on the trained models, whose crop ran at 0.91-0.99x of the full model's ORT latency
+//! nodes on the trained models, whose crop ran at 0.93-1.01x of the full model's ORT latency
 //! at 256x192 instead of 0.67x (full-size v5 at 640x480: 0.742x against 0.661x); `halo: zero`
 //! keeps that speed.
 
@@ -60,7 +60,7 @@ const RIDGE: f64 = 1e-3;
 /// The most weights one strip's mix may have (its Gram and cross moments are as large, in
 /// f64): a 512-channel map's one-row halo has 262,144; past the bound (an untrusted model's
 /// huge channel count or padding) the strip falls back to the mean.
-const MAX_MIX: usize = 1 << 22;
+pub(super) const MAX_MIX: usize = 1 << 22;
 
 /// Sides in ONNX `pads` order: top, left, bottom, right.
 const SIDES: [&str; 4] = ["top", "left", "bottom", "right"];
@@ -75,11 +75,11 @@ struct Read {
 /// Where a value of the full model lies: its channels, the crop's rows and columns in it
 /// (`begin`, `len` per spatial axis), and how many rows or columns exist past each side.
 #[derive(Clone, Copy)]
-struct Place {
-    channels: usize,
-    full: [usize; 2],
-    begin: [usize; 2],
-    len: [usize; 2],
+pub(super) struct Place {
+    pub channels: usize,
+    pub full: [usize; 2],
+    pub begin: [usize; 2],
+    pub len: [usize; 2],
     outside: [usize; 4],
 }
 
@@ -87,10 +87,13 @@ struct Place {
 /// columns) past the edge, at each position `along` it, and the edge row itself.
 struct Strip {
     depth: usize,
+    /// Rows (or columns) of the crop the estimate reads, from its edge inwards.
+    rows: usize,
     /// Range of the other axis covered: for rows, the crop's columns; for columns, the crop's
     /// rows extended by the row halos (the corners are estimated too).
     along: (usize, usize),
-    /// Per frame: the edge, [C][T]; the strip, [C][depth][T] (depth 0 next to the edge).
+    /// Per frame: the edge, [C][rows][T] (row 0 the edge itself); the strip, [C][depth][T]
+    /// (depth 0 next to the edge).
     edge: Vec<f32>,
     past: Vec<f32>,
 }
@@ -98,6 +101,8 @@ struct Strip {
 /// The fitted estimate of one strip: `mix` [(C * depth) x C] on the edge (zero for `mean`),
 /// plus `intercept` [C][depth][T].
 struct Fit {
+    /// Rows read from the edge inwards; `mix` is [(C * depth) x (C * rows)].
+    rows: usize,
     mix: Vec<f64>,
     intercept: Vec<f32>,
     /// Squared error of the estimate and of zero padding against the true rows.
@@ -116,7 +121,7 @@ pub struct Report {
 
 /// Adds halos to `cropped` (the `full` model cut to `roi` of a `frame`), fitted on `frames`
 /// (feeds of the full model). Only Conv and MaxPool with explicit pads get them.
-pub fn add(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [usize; 2], frames: &[Vec<(String, Tensor)>], mode: Mode, threads: usize) -> Result<Report> {
+pub fn add(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [usize; 2], frames: &[Vec<(String, Tensor)>], mode: Mode, rows: usize, threads: usize) -> Result<Report> {
     if mode == Mode::Zero {
         return Ok(Report { reads: 0, values: 0, frames: 0, rel_error: BTreeMap::new() });
     }
@@ -158,7 +163,8 @@ pub fn add(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [usize;
                 continue;
             }
             let along = if s % 2 == 0 { (p.begin[1], p.begin[1] + p.len[1]) } else { (p.begin[0] - d[0], p.begin[0] + p.len[0] + d[2]) };
-            strips.insert((v.to_string(), s), Strip { depth: d[s], along, edge: Vec::new(), past: Vec::new() });
+            let rows = rows.min(p.len[s % 2]).max(1);
+            strips.insert((v.to_string(), s), Strip { depth: d[s], rows, along, edge: Vec::new(), past: Vec::new() });
         }
     }
     collect(full, frames, &places, &mut strips, threads)?;
@@ -191,7 +197,7 @@ pub fn add(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [usize;
 }
 
 /// Where `value` lies in the full model, when its stride divides the ROI.
-fn place(inf: &crate::ir::Inferred, value: &str, roi: Roi, frame: [usize; 2]) -> Option<Place> {
+pub(super) fn place(inf: &crate::ir::Inferred, value: &str, roi: Roi, frame: [usize; 2]) -> Option<Place> {
     let s = inf.shape(value)?;
     if s.len() != 4 || s[0] != 1 || s[2] == 0 || s[3] == 0 || frame[0] % s[2] != 0 || frame[1] % s[3] != 0 {
         return None;
@@ -239,42 +245,48 @@ fn accumulate(strip: &mut Strip, s: usize, p: &Place, data: &[f32]) {
     };
     let past = |j: usize| if s < 2 { edge - 1 - j } else { edge + 1 + j };
     let along = strip.along.0..strip.along.1;
+    let inward = |j: usize| if s < 2 { edge + j } else { edge - j };
     for c in 0..p.channels {
-        strip.edge.extend(along.clone().map(|a| at(c, edge, a)));
+        for j in 0..strip.rows {
+            strip.edge.extend(along.clone().map(|a| at(c, inward(j), a)));
+        }
         for j in 0..strip.depth {
             strip.past.extend(along.clone().map(|a| at(c, past(j), a)));
         }
     }
 }
 
-/// The least-squares estimate of a strip from its edge: each (channel, depth) of the strip a
-/// linear function of every channel of the edge (`Linear`) or a constant (`Mean`), with an
-/// intercept per position: the fit runs on values centred per position, so a position's
-/// average (a column under the vignetting, a gate map's slope) is the intercept's, and the
-/// mix carries only what varies from frame to frame.
+/// The least-squares estimate of a strip from the rows next to its edge: each (channel, depth)
+/// of the strip a linear function of every channel of the rows read (`Linear`) or a constant
+/// (`Mean`), with an intercept per position: the fit runs on values centred per position, so
+/// a position's average (a column under the vignetting, a gate map's slope) is the
+/// intercept's, and the mix carries only what varies from frame to frame.
 fn fit(strip: &Strip, channels: usize, mode: Mode) -> Fit {
     let t = strip.along.1 - strip.along.0;
-    let (c, m) = (channels, channels * strip.depth);
+    // Features: every channel of every row read, `ch * rows + j`.
+    let (c, m) = (channels * strip.rows, channels * strip.depth);
     let frames = strip.edge.len() / (c * t).max(1);
     let n = frames.max(1) as f64;
-    let edge = |f: usize, ch: usize, x: usize| strip.edge[(f * c + ch) * t + x] as f64;
+    let edge = |f: usize, ft: usize, x: usize| strip.edge[(f * c + ft) * t + x] as f64;
     let past = |f: usize, k: usize, x: usize| strip.past[(f * m + k) * t + x] as f64;
     let edge_mean: Vec<f64> = (0..c * t).map(|i| (0..frames).map(|f| edge(f, i / t, i % t)).sum::<f64>() / n).collect();
     let past_mean: Vec<f64> = (0..m * t).map(|i| (0..frames).map(|f| past(f, i / t, i % t)).sum::<f64>() / n).collect();
-    let mut mix = vec![0.0; m * c];
+    let (mut rows, mut mix) = (1, vec![0.0; m * channels]);
     if mode == Mode::Linear && frames >= 2 && m * c <= MAX_MIX {
         let mut moments = Moments::new(c, m);
-        let xs: Vec<Vec<f64>> = (0..c).map(|ch| (0..frames * t).map(|i| edge(i / t, ch, i % t) - edge_mean[ch * t + i % t]).collect()).collect();
+        let xs: Vec<Vec<f64>> = (0..c).map(|ft| (0..frames * t).map(|i| edge(i / t, ft, i % t) - edge_mean[ft * t + i % t]).collect()).collect();
         let ts: Vec<Vec<f64>> = (0..m).map(|k| (0..frames * t).map(|i| past(i / t, k, i % t) - past_mean[k * t + i % t]).collect()).collect();
         moments.add_columns(&xs, &ts);
         if let Some((mm, _)) = moments.solve(RIDGE, None) {
-            mix = mm;
+            (rows, mix) = (strip.rows, mm);
         }
     }
+    // Without a mix, only the first row's (zero) weights remain.
+    let d = channels * rows;
     let mut intercept = vec![0f32; m * t];
     for k in 0..m {
         for x in 0..t {
-            let b = past_mean[k * t + x] - (0..c).map(|ch| mix[k * c + ch] * edge_mean[ch * t + x]).sum::<f64>();
+            let b = past_mean[k * t + x] - (0..d).map(|ft| mix[k * d + ft] * edge_mean[ft * t + x]).sum::<f64>();
             intercept[k * t + x] = b as f32;
         }
     }
@@ -283,13 +295,13 @@ fn fit(strip: &Strip, channels: usize, mode: Mode) -> Fit {
         for k in 0..m {
             for x in 0..t {
                 let y = past(f, k, x);
-                let est = intercept[k * t + x] as f64 + (0..c).map(|ch| mix[k * c + ch] * edge(f, ch, x)).sum::<f64>();
+                let est = intercept[k * t + x] as f64 + (0..d).map(|ft| mix[k * d + ft] * edge(f, ft, x)).sum::<f64>();
                 error += (y - est) * (y - est);
                 zero_error += y * y;
             }
         }
     }
-    Fit { mix, intercept, error, zero_error }
+    Fit { rows, mix, intercept, error, zero_error }
 }
 
 /// Writes the nodes that pad `read.value` with its halos (rows, then columns) and returns the
@@ -321,13 +333,19 @@ fn emit(g: &mut GraphProto, read: &Read, p: &Place, strips: &BTreeMap<(String, u
             shape[5 - axis] = len;
             let c_in = p.channels;
             let mut b = vec![0f32; c_in * d * len];
-            // The 1x1 convolution's weight: output channel c * d + r is row r of channel c.
-            let mut w = vec![0f32; c_in * d * c_in];
+            // The mix is a convolution over the rows read, [C * d, C, rows, 1] ([.., 1, rows] for
+            // columns): output channel c * d + r is row r of channel c; kernel tap `at` reads
+            // the row `inward(at)` steps in from the edge (the slice lists rows in index order).
+            let reads = f.rows;
+            let inward = |at: usize| if s == before { at } else { reads - 1 - at };
+            let mut w = vec![0f32; c_in * d * c_in * reads];
             for c in 0..c_in {
                 for r in 0..d {
                     let k = c * strip.depth + depth_at(r);
                     for ch in 0..c_in {
-                        w[(c * d + r) * c_in + ch] = f.mix[k * c_in + ch] as f32;
+                        for at in 0..reads {
+                            w[((c * d + r) * c_in + ch) * reads + at] = f.mix[(k * c_in + ch) * reads + inward(at)] as f32;
+                        }
                     }
                     for t in 0..len {
                         let at = if axis == 2 { (c * d + r) * len + t } else { (c * len + t) * d + r };
@@ -339,13 +357,14 @@ fn emit(g: &mut GraphProto, read: &Read, p: &Place, strips: &BTreeMap<(String, u
             let rows = constant(g, &format!("{tag}_intercept"), shape.clone(), b);
             // A fit with no mix (`mean`, or past MAX_MIX) is its constant rows alone.
             let part = if f.mix.iter().any(|&v| v != 0.0) {
-                let edge_at = if s == before { 0 } else { extent[axis - 2] as i64 - 1 };
-                let starts = constant_i64s(g, &format!("{tag}_start"), vec![edge_at]);
-                let ends = constant_i64s(g, &format!("{tag}_end"), vec![edge_at + 1]);
+                let first = if s == before { 0 } else { (extent[axis - 2] - reads) as i64 };
+                let starts = constant_i64s(g, &format!("{tag}_start"), vec![first]);
+                let ends = constant_i64s(g, &format!("{tag}_end"), vec![first + reads as i64]);
                 let axes = constant_i64s(g, &format!("{tag}_axis"), vec![axis as i64]);
-                let weight = constant(g, &format!("{tag}_mix"), vec![c_in * d, c_in, 1, 1], w);
+                let kernel = if axis == 2 { [reads, 1] } else { [1, reads] };
+                let weight = constant(g, &format!("{tag}_mix"), vec![c_in * d, c_in, kernel[0], kernel[1]], w);
                 let edge = node(g, "Slice", &format!("{tag}_edge"), vec![cur.clone(), starts, ends, axes], vec![]);
-                let mixed = node(g, "Conv", &format!("{tag}_mixed"), vec![edge, weight], vec![attr::make_ints("kernel_shape", vec![1, 1])]);
+                let mixed = node(g, "Conv", &format!("{tag}_mixed"), vec![edge, weight], vec![attr::make_ints("kernel_shape", kernel.iter().map(|&k| k as i64).collect())]);
                 // [N, C * d, 1, len] or [N, C * d, len, 1] -> [N, C, d, len] (-> [N, C, len, d]);
                 // one row deep (a 3x3 kernel's halo) it already is: a node costs ORT ~10 us.
                 let mut est = mixed;
@@ -396,36 +415,38 @@ fn node(g: &mut GraphProto, op: &str, base: &str, input: Vec<String>, attribute:
 mod tests {
     use super::*;
 
-    /// Rows that are an exact linear function of the edge (plus a per-position offset) are
-    /// fitted exactly, with the mix and the intercept where `emit` reads them.
+    /// Rows that are an exact linear function of the two rows read (plus a per-position
+    /// offset) are fitted exactly, with the mix and the intercept where `emit` reads them.
     #[test]
     fn linear_fit_recovers_an_exact_relation() {
-        let (c, depth, t, frames) = (3usize, 2usize, 5usize, 40usize);
-        let mix = |k: usize, ch: usize| ((k * 7 + ch * 3) % 5) as f64 * 0.25 - 0.5;
+        let (c, rows, depth, t, frames) = (3usize, 2usize, 2usize, 5usize, 60usize);
+        let f = c * rows;
+        let mix = |k: usize, ft: usize| ((k * 7 + ft * 3) % 5) as f64 * 0.25 - 0.5;
         let offset = |k: usize, x: usize| (k + x) as f64 * 0.1;
         let mut rng = crate::optics::rng::Rng::new(7);
-        let mut strip = Strip { depth, along: (2, 2 + t), edge: Vec::new(), past: Vec::new() };
+        let mut strip = Strip { depth, rows, along: (2, 2 + t), edge: Vec::new(), past: Vec::new() };
         for _ in 0..frames {
-            let e: Vec<f64> = (0..c * t).map(|_| rng.normal()).collect();
+            let e: Vec<f64> = (0..f * t).map(|_| rng.normal()).collect();
             strip.edge.extend(e.iter().map(|&v| v as f32));
             for k in 0..c * depth {
                 for x in 0..t {
-                    let v = offset(k, x) + (0..c).map(|ch| mix(k, ch) * e[ch * t + x]).sum::<f64>();
+                    let v = offset(k, x) + (0..f).map(|ft| mix(k, ft) * e[ft * t + x]).sum::<f64>();
                     strip.past.push(v as f32);
                 }
             }
         }
-        let f = fit(&strip, c, Mode::Linear);
-        assert!(f.error < 1e-4 * f.zero_error, "error {} of {}", f.error, f.zero_error);
+        let fitted = fit(&strip, c, Mode::Linear);
+        assert_eq!(fitted.rows, rows);
+        assert!(fitted.error < 1e-4 * fitted.zero_error, "error {} of {}", fitted.error, fitted.zero_error);
         for k in 0..c * depth {
-            for ch in 0..c {
-                assert!((f.mix[k * c + ch] - mix(k, ch)).abs() < 1e-3, "mix[{k}][{ch}] = {}", f.mix[k * c + ch]);
+            for ft in 0..f {
+                assert!((fitted.mix[k * f + ft] - mix(k, ft)).abs() < 1e-3, "mix[{k}][{ft}] = {}", fitted.mix[k * f + ft]);
             }
             for x in 0..t {
-                assert!((f.intercept[k * t + x] as f64 - offset(k, x)).abs() < 1e-3);
+                assert!((fitted.intercept[k * t + x] as f64 - offset(k, x)).abs() < 1e-3);
             }
         }
         let mean = fit(&strip, c, Mode::Mean);
-        assert!(mean.mix.iter().all(|&m| m == 0.0) && mean.error > 100.0 * f.error);
+        assert!(mean.mix.iter().all(|&m| m == 0.0) && mean.error > 100.0 * fitted.error);
     }
 }

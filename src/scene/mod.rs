@@ -13,6 +13,7 @@
 pub mod compare;
 pub mod geometry;
 pub mod halo;
+pub mod pool;
 pub mod preview;
 
 use crate::onnx::proto::{ModelProto, StringStringEntryProto};
