@@ -15,9 +15,9 @@
 //! an estimate of the frame's ([`crate::scene::pool`]). Frames come from `--calib` or the
 //! physics pipeline.
 //! Guarantees: every cropped constant equals the full one's crop bit for bit. The outputs are
-//! *not* the full model's: the halos and the pooled means are estimates. The pass leaves the full model as the
-//! teacher (full frames, cropped values) for `recover`; `verify` measures agreement on
-//! reference detections one coarsest stride inside the ROI.
+//! *not* the full model's: the halos and the pooled means are estimates. The pass leaves the
+//! full model as the teacher (full frames, cropped values) for `recover`; `verify` measures
+//! agreement on reference detections one coarsest stride inside the ROI.
 //! Reports: the ROI, the constants cropped, Reshape targets rewritten, the halos (values,
 //! padded reads, and per side their error on the calibration frames relative to zero padding's),
 //! and per pool the chosen fit and its held-out error relative to the uncorrected mean's.
@@ -50,7 +50,7 @@ pub struct Options {
     pub halo_rows: usize,
     /// Calibration frames the halos are fitted on. The deepest map's edge has 8 positions a
     /// frame at 256x192, so 64 frames give its up to 256-channel fit 512 samples (with a
-    /// ridge); fitted so, the v5 w0.25's crop agreed 0.980 on 200 held-out frames.
+    /// ridge); fitted so, the v5 w0.25's crop agreed 0.986 on 200 held-out frames.
     pub frames: usize,
     /// Whether global average pools get the frame-mean correction (with any halo but `zero`).
     pub pools: bool,

@@ -26,7 +26,7 @@ use anyhow::Result;
 
 /// Ridge strengths tried, relative to the ROI means' average variance over the frames: from
 /// nearly free (enough frames for the channels) to nearly the identity.
-const LAMBDAS: [f64; 5] = [1e-2, 1e-1, 1.0, 10.0, 100.0];
+const LAMBDAS: [f64; 6] = [1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0];
 
 /// Folds of the cross-validation: 16 held-out frames of 64 per fold.
 const FOLDS: usize = 4;
