@@ -7,8 +7,8 @@
 //! puts an estimate of the missing rows (or columns) in place of that padding, computed in the
 //! graph from the crop's own edge row: each channel at each distance from the edge is a
 //! linear function of every channel of the edge (`linear`: a 1x1 convolution of the edge row;
-//! `rows` > 1 reads that many rows in, a (rows x 1) convolution) plus an intercept per position, least-squares fitted on calibration frames to the full
-//! model's own values; `mean` keeps the intercept alone (the rows' average over the frames).
+//! `halo_rows: N` reads N rows in, an (N x 1) convolution) plus an intercept per position,
+//! least-squares fitted on calibration frames to the full model's own values; `mean` keeps the intercept alone (the rows' average over the frames).
 //! Sides where the ROI meets the frame's border keep their padding: the full model pads there
 //! too, so those stay exact.
 //!
@@ -18,8 +18,8 @@
 //! the edge row, with [`super::pool`]'s correction, fitted on 64 physics-pipeline frames: 0.986
 //! / 0.980 / 0.906 (fitting frames drawn with another seed: 0.985 / 0.980 / 0.894). The edge's
 //! channels together say most of what the rows past it hold: the error on the fitting frames
-//! is 0.14-0.18 of zero padding's. A slope per channel instead of the mix (tried) lost 0.03 /
-//! 0.00 / 0.27 of agreement.
+//! is 0.16-0.21 of zero padding's. A slope per channel instead of the mix (tried, before the
+//! fix that made these fits reproducible) lost 0.03 / 0.00 / 0.27 of agreement.
 //!
 //! The halo is a Slice of the edge, a Conv, an Add and a Concat per padded value (a
 //! Reshape more for a halo deeper than one row, and a Transpose for side columns): operators
@@ -98,8 +98,8 @@ struct Strip {
     past: Vec<f32>,
 }
 
-/// The fitted estimate of one strip: `mix` [(C * depth) x C] on the edge (zero for `mean`),
-/// plus `intercept` [C][depth][T].
+/// The fitted estimate of one strip: `mix` on the rows read (zero for `mean`), plus
+/// `intercept` [C][depth][T].
 struct Fit {
     /// Rows read from the edge inwards; `mix` is [(C * depth) x (C * rows)].
     rows: usize,
