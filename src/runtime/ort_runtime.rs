@@ -85,8 +85,6 @@ impl OrtRuntime {
             values.push((name.clone(), to_ort(t).with_context(|| format!("input {name}"))?));
         }
         let names = self.output_names();
-        // Inputs are lent, not given: an output that is a graph input (a halo's fit exposes
-        // the image) is ORT's view of the input's buffer, which must outlive the outputs.
         let outputs = self.session.run(lend(&values)).map_err(|e| anyhow!("ONNX Runtime failed: {e}"))?;
         let mut seen: Vec<(&str, &[f32])> = Vec::new();
         for n in &names {
@@ -109,8 +107,6 @@ impl Runtime for OrtRuntime {
             values.push((name.clone(), to_ort(t).with_context(|| format!("input {name}"))?));
         }
         let names = self.output_names();
-        // Inputs are lent, not given: an output that is a graph input (a halo's fit exposes
-        // the image) is ORT's view of the input's buffer, which must outlive the outputs.
         let outputs = self.session.run(lend(&values)).map_err(|e| anyhow!("ONNX Runtime failed: {e}"))?;
         names
             .into_iter()
@@ -123,6 +119,8 @@ impl Runtime for OrtRuntime {
     }
 }
 
+/// Inputs lent to a run, not given: an output that is a graph input (a halo's fit exposes the
+/// image) is ORT's view of the input's buffer, which must outlive the outputs.
 fn lend(values: &[(String, DynValue)]) -> Vec<(&str, &DynValue)> {
     values.iter().map(|(n, v)| (n.as_str(), v)).collect()
 }

@@ -392,7 +392,7 @@ fn emit(g: &mut GraphProto, read: &Read, p: &Place, strips: &BTreeMap<(String, u
     cur
 }
 
-fn constant(g: &mut GraphProto, base: &str, shape: Vec<usize>, v: Vec<f32>) -> String {
+pub(super) fn constant(g: &mut GraphProto, base: &str, shape: Vec<usize>, v: Vec<f32>) -> String {
     let name = fresh_name(g, base);
     g.initializer.push(from_tensor(&name, &Tensor::f32(shape, v)));
     name
@@ -405,7 +405,7 @@ fn constant_i64s(g: &mut GraphProto, base: &str, v: Vec<i64>) -> String {
 }
 
 /// Appends a node with a fresh output name (its node name is the same) and returns the output.
-fn node(g: &mut GraphProto, op: &str, base: &str, input: Vec<String>, attribute: Vec<crate::onnx::proto::AttributeProto>) -> String {
+pub(super) fn node(g: &mut GraphProto, op: &str, base: &str, input: Vec<String>, attribute: Vec<crate::onnx::proto::AttributeProto>) -> String {
     let out = fresh_name(g, base);
     g.node.push(NodeProto { name: out.clone(), op_type: op.into(), input, output: vec![out.clone()], attribute, ..Default::default() });
     out

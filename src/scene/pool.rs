@@ -13,11 +13,11 @@
 //! and its held-out error relative to the uncorrected crop's.
 //! `halo: zero` leaves the pools as they are; `mean` keeps the offset alone.
 
-use super::halo::{place, Mode};
+use super::halo::{constant, node, place, Mode};
 use crate::ir::{infer, Graph};
-use crate::onnx::edit::{expose_outputs, fresh_name};
-use crate::onnx::proto::{ModelProto, NodeProto};
-use crate::onnx::tensor_proto::from_tensor;
+use crate::onnx::attr;
+use crate::onnx::edit::{expose_outputs, sort_topologically};
+use crate::onnx::proto::ModelProto;
 use crate::prune::ridge::Moments;
 use crate::runtime::ort_runtime::OrtRuntime;
 use crate::scene::Roi;
@@ -101,27 +101,22 @@ pub fn correct(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [us
         let (w, b) = solve(&moments(s, 0..s.roi[0].len()), lambda);
         let out = g.node[*i].output[0].clone();
         let c = s.channels;
-        let wname = fresh_name(g, &format!("{out}_frame_mix"));
-        g.initializer.push(from_tensor(&wname, &Tensor::f32(vec![c, c, 1, 1], w.iter().map(|&v| v as f32).collect())));
-        let bname = fresh_name(g, &format!("{out}_frame_offset"));
-        g.initializer.push(from_tensor(&bname, &Tensor::f32(vec![c], b.iter().map(|&v| v as f32).collect())));
-        let corrected = fresh_name(g, &format!("{out}_frame"));
-        for n in g.node.iter_mut() {
+        let mix = constant(g, &format!("{out}_frame_mix"), vec![c, c, 1, 1], w.iter().map(|&v| v as f32).collect());
+        let offset = constant(g, &format!("{out}_frame_offset"), vec![c], b.iter().map(|&v| v as f32).collect());
+        let corrected = node(g, "Conv", &format!("{out}_frame"), vec![out.clone(), mix, offset], vec![attr::make_ints("kernel_shape", vec![1, 1])]);
+        // Every reader of the pooled means but the correction itself (the last node) reads it.
+        let last = g.node.len() - 1;
+        for n in &mut g.node[..last] {
             n.input.iter_mut().filter(|v| **v == out).for_each(|v| *v = corrected.clone());
         }
         for o in g.output.iter_mut().filter(|o| o.name == out) {
             o.name = corrected.clone();
         }
-        let conv = NodeProto {
-            name: corrected.clone(),
-            op_type: "Conv".into(),
-            input: vec![out.clone(), wname, bname],
-            output: vec![corrected.clone()],
-            attribute: vec![crate::onnx::attr::make_ints("kernel_shape", vec![1, 1])],
-            ..Default::default()
-        };
-        g.node.insert(i + 1 + reports.len(), conv);
         reports.push(PoolReport { value: names[k].clone(), channels: c, lambda, rel_error });
+    }
+    if !reports.is_empty() {
+        sort_topologically(g)?;
+        crate::passes::fold_constants::write_value_info(g)?;
     }
     Ok(reports)
 }
