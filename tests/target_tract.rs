@@ -24,6 +24,18 @@ fn tract_target_writes_a_checked_folder() {
         assert!(tract_yaml.contains("depthwise_split") && tract_yaml.contains("/bridge/dw/Conv"), "{tract_yaml}");
         let shipped = common::load(&out.join("model.onnx"));
         assert!(!pdi_compile::passes::split_wide_depthwise::any_to_split(shipped.graph.as_ref().unwrap()));
+        // Each convolution tract would run directly (the encoder's, at 256 columns and more)
+        // was timed whole and tiled, and ships tiled exactly where the tiles were faster.
+        let yaml: serde_json::Value = yaml_serde::from_str(&tract_yaml).unwrap();
+        let forms = yaml["conv_tiles"].as_array().unwrap_or_else(|| panic!("no conv_tiles in {tract_yaml}"));
+        assert!(forms.iter().any(|f| f["node"].as_str().unwrap().starts_with("/enc1/")), "{tract_yaml}");
+        for f in forms {
+            let (whole, tiled) = (f["whole_ms"].as_f64().unwrap(), f["tiled_ms"].as_f64().unwrap());
+            let chosen = f["tiled"].as_bool().unwrap();
+            assert!(whole > 0.0 && tiled > 0.0 && (!chosen || tiled < whole), "{f}");
+            let concat = format!("{}_tiles", f["node"].as_str().unwrap());
+            assert_eq!(shipped.graph.as_ref().unwrap().node.iter().any(|n| n.name == concat), chosen, "{f}");
+        }
         assert!(std::fs::read_to_string(out.join("manifest.yaml")).unwrap().contains("target: tract"));
     }
 }

@@ -20,13 +20,14 @@ pub mod rknn_legalize;
 pub mod rknn_qat;
 pub mod split_wide_depthwise;
 pub mod strip_recon;
+pub mod tile_conv_columns;
 pub mod to_fp16;
 
 use crate::pipeline::{Pass, PassSpec};
 use anyhow::{anyhow, bail, Result};
 
 /// Every pass this build knows, by the name recipes use.
-pub const KNOWN: &[&str] = &["promote-constants", "strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "drop-classes", "drop-strides", "crop-roi", "prune", "recover", "quantize", "fp16", "rknn-legalize", "rknn-hybrid", "rknn-qat", "split-wide-depthwise"];
+pub const KNOWN: &[&str] = &["promote-constants", "strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce", "cleanup", "drop-classes", "drop-strides", "crop-roi", "prune", "recover", "quantize", "fp16", "rknn-legalize", "rknn-hybrid", "rknn-qat", "split-wide-depthwise", "tile-conv-columns"];
 
 pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
     Ok(match spec.name.as_str() {
@@ -50,6 +51,7 @@ pub fn build(spec: &PassSpec) -> Result<Box<dyn Pass>> {
         "rknn-hybrid" => Box::new(rknn_hybrid::RknnHybrid { options: options(spec)? }),
         "rknn-qat" => Box::new(rknn_qat::RknnQat { options: options(spec)? }),
         "split-wide-depthwise" => Box::new(split_wide_depthwise::SplitWideDepthwise),
+        "tile-conv-columns" => Box::new(tile_conv_columns::TileConvColumns { options: options(spec)? }),
         other => bail!("unknown pass '{other}' in the pipeline (known passes: {})", KNOWN.join(", ")),
     })
 }

@@ -5,6 +5,7 @@ pub mod rknn;
 pub mod rknn_convert;
 pub mod rknn_points;
 pub mod tract;
+pub mod tract_tiles;
 
 /// Where the compiled model goes.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]

@@ -7,7 +7,9 @@
 //!
 //! Depthwise convolutions wider than tract's SIMD kernel takes are split into bands in the
 //! shipped model (`split-wide-depthwise`), so any tract that loads it runs them vectorized;
-//! tract.yaml lists them.
+//! convolutions that ran faster on tract as matrix products over column tiles than as its
+//! direct spatial convolution ship tiled (`tract_tiles`). tract.yaml lists both, and ONNX
+//! Runtime, timed for scale, runs the model without them.
 //!
 //! An INT8 model is kept only where tract ran it faster than the float model it was quantized
 //! from, on the machine that compiles: tract's integer kernels do not beat its f32 ones
@@ -53,6 +55,9 @@ pub struct TractArtifact {
     /// Depthwise convolutions split into bands for tract's SIMD kernel, and those left whole.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub depthwise_split: Vec<serde_json::Value>,
+    /// Convolutions tract would run directly, timed alone whole and in column tiles.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub conv_tiles: Vec<super::tract_tiles::ConvForm>,
 }
 
 /// Checks `model` on tract and writes DIR/tract.yaml (and the NNEF archive where it pays);
@@ -75,15 +80,17 @@ pub fn write(dir: &Path, model: ModelProto, float: Option<ModelProto>, threads: 
             }
         }
     };
+    let for_ort = model.clone();
     let mut model = model;
     let (split, left) = crate::passes::split_wide_depthwise::split_all(model.graph.as_mut().ok_or_else(|| anyhow!("model has no graph"))?)?;
+    let conv_tiles = super::tract_tiles::choose(&mut model, threads)?;
     let model = &model;
 
     let t = Instant::now();
     let mut from_onnx = TractRuntime::new(model, &feeds, threads)?;
     let onnx_load_ms = t.elapsed().as_secs_f64() * 1e3;
     let (tract_out, onnx_run_ms) = timed_runs(&mut from_onnx, &feeds)?;
-    let mut ort = OrtRuntime::with_options(model, ort::session::builder::GraphOptimizationLevel::Level3, threads)?;
+    let mut ort = OrtRuntime::with_options(&for_ort, ort::session::builder::GraphOptimizationLevel::Level3, threads)?;
     let (ort_out, ort_run_ms) = timed_runs(&mut ort, &feeds)?;
     let rel_l2_vs_ort = tract_out.iter().zip(&ort_out).map(|((_, a), (_, b))| compare(&b.data.to_f64(), &a.data.to_f64()).rel_l2).fold(0.0, f64::max);
 
@@ -125,6 +132,7 @@ pub fn write(dir: &Path, model: ModelProto, float: Option<ModelProto>, threads: 
         threads,
         int8,
         depthwise_split: split.into_iter().chain(left).collect(),
+        conv_tiles,
     };
     write_atomic(&dir.join("tract.yaml"), yaml_serde::to_string(&artifact)?.as_bytes())?;
     Ok((artifact, model.clone()))
