@@ -69,7 +69,7 @@ impl Pass for TileConvColumns {
                     tiled.push(serde_json::json!({ "node": name, "width": plan.width, "tiles": plan.tiles.len() }));
                 }
                 Some((_, Err(why))) => left.push(serde_json::json!({ "node": name, "reason": why })),
-                None => left.push(serde_json::json!({ "node": name, "reason": "not a float group-1 2-D convolution tract would run directly" })),
+                None => left.push(serde_json::json!({ "node": name, "reason": "not a float group-1 2-D convolution tract would run directly, or not the only node of that name" })),
             }
         }
         Ok(serde_json::json!({ "tiled": tiled, "left": left }))
@@ -100,7 +100,16 @@ pub fn candidates(model: &ModelProto) -> Result<Vec<(String, Result<Plan, String
     let ir = Graph::build(g)?;
     let shapes = infer(&ir);
     let opset = default_opset(model).unwrap_or(0);
-    Ok(g.node.iter().filter_map(|n| direct_spatial(g, n, &shapes).map(|input| (n.name.clone(), plan(n, &input, opset)))).collect())
+    // Convolutions are addressed by name, so only a name that is there once can be tiled.
+    let mut names: std::collections::HashMap<&str, usize> = std::collections::HashMap::new();
+    for n in &g.node {
+        *names.entry(n.name.as_str()).or_default() += 1;
+    }
+    Ok(g.node
+        .iter()
+        .filter(|n| !n.name.is_empty() && names[n.name.as_str()] == 1)
+        .filter_map(|n| direct_spatial(g, n, &shapes).map(|input| (n.name.clone(), plan(n, &input, opset))))
+        .collect())
 }
 
 /// The input shape of `n` when tract-core 0.23 would run it as a direct spatial convolution
