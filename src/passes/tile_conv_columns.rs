@@ -6,7 +6,7 @@
 //! spatial convolution (a filter along the row, four output channels at a time), and any
 //! other as im2col and a matrix product. Neither wins everywhere. The full-size v5 at 640x480
 //! on 2 cores (`examples/tract_profile`, one profile each): the 64 -> 128 channel 3x3 of the
-//! third encoder stage took 77 ms direct and 19-27 ms as matrix products over tiles, while
+//! third encoder stage took 77 ms direct and 19-29 ms as matrix products over tiles, while
 //! the 1 -> 32 channel first convolution is fastest direct. A row narrower than 128 points is
 //! the one thing a model file can say that steers tract to the matrix product for one
 //! convolution, so the tract target times each candidate alone both ways and tiles those
