@@ -29,6 +29,16 @@ fn tract_target_writes_a_checked_folder() {
         let yaml: serde_json::Value = yaml_serde::from_str(&tract_yaml).unwrap();
         let forms = yaml["conv_tiles"].as_array().unwrap_or_else(|| panic!("no conv_tiles in {tract_yaml}"));
         assert!(forms.iter().any(|f| f["node"].as_str().unwrap().starts_with("/enc1/")), "{tract_yaml}");
+        // One thread weighed against all of them; the advice follows the two medians.
+        let threads = yaml["threads"].as_u64().unwrap();
+        let fastest = yaml["fastest_threads"].as_u64().unwrap();
+        if threads > 1 {
+            let (one, all) = (yaml["one_thread_ms"].as_f64().unwrap(), yaml["all_threads_ms"].as_f64().unwrap());
+            assert_eq!(fastest == 1, one < all * 0.95, "{tract_yaml}");
+            assert!(fastest == 1 || fastest == threads, "{tract_yaml}");
+        } else {
+            assert_eq!(fastest, 1, "{tract_yaml}");
+        }
         for f in forms {
             let (whole, tiled) = (f["whole_ms"].as_f64().unwrap(), f["tiled_ms"].as_f64().unwrap());
             let chosen = f["tiled"].as_bool().unwrap();

@@ -11,6 +11,10 @@
 //! direct spatial convolution ship tiled (`tract_tiles`). tract.yaml lists both, and ONNX
 //! Runtime, timed for scale, runs the model without them.
 //!
+//! tract.yaml also says whether one thread ran the model faster than all of them, each run
+//! after a pause as between camera frames (`fastest_threads`): on small models, waking
+//! tract's sleeping workers for every operator costs more than the second core gives.
+//!
 //! An INT8 model is kept only where tract ran it faster than the float model it was quantized
 //! from, on the machine that compiles: tract's integer kernels do not beat its f32 ones
 //! everywhere (the trained tiny v5 pruned, 256x192, 2 x86 cores: 22.3 ms in INT8 against
@@ -24,6 +28,7 @@ use crate::onnx::proto::ModelProto;
 use crate::runtime::ort_runtime::OrtRuntime;
 use crate::runtime::tract_runtime::{typed_model, TractRuntime};
 use crate::runtime::Runtime;
+use crate::verify::latency::interleaved;
 use crate::tensor::Tensor;
 use anyhow::{anyhow, bail, Result};
 use std::path::Path;
@@ -33,6 +38,11 @@ use tract_onnx::WithOnnx;
 
 /// Timed runs per loaded model (the median is reported).
 const RUNS: usize = 5;
+/// Runs per thread count when one thread is weighed against all of them.
+const THREAD_RUNS: usize = 7;
+/// One thread is recommended only when this much faster: medians of one model timed against
+/// itself this way differ by a few percent.
+const THREADS_MIN_GAIN: f64 = 0.05;
 
 #[derive(serde::Serialize)]
 pub struct TractArtifact {
@@ -58,6 +68,14 @@ pub struct TractArtifact {
     /// Convolutions tract would run directly, timed alone whole and in column tiles.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub conv_tiles: Vec<super::tract_tiles::ConvForm>,
+    /// tract's median on one thread and on `threads`, each run after a pause (see
+    /// [`time_threads`]); absent when `threads` is 1.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub one_thread_ms: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub all_threads_ms: Option<f64>,
+    /// The thread count to run this model with: 1 where one thread ran it faster that way.
+    pub fastest_threads: usize,
 }
 
 /// Checks `model` on tract and writes DIR/tract.yaml (and the NNEF archive where it pays);
@@ -90,6 +108,12 @@ pub fn write(dir: &Path, model: ModelProto, float: Option<ModelProto>, threads: 
     let mut from_onnx = TractRuntime::new(model, &feeds, threads)?;
     let onnx_load_ms = t.elapsed().as_secs_f64() * 1e3;
     let (tract_out, onnx_run_ms) = timed_runs(&mut from_onnx, &feeds)?;
+    let (one_thread_ms, all_threads_ms) = if threads > 1 { time_threads(model, &feeds, threads).map(|(a, b)| (Some(a), Some(b)))? } else { (None, None) };
+    // Advice for whoever runs the artifact, not a fault of the model: tract.yaml, no warning.
+    let fastest_threads = match (one_thread_ms, all_threads_ms) {
+        (Some(one), Some(all)) if one < all * (1.0 - THREADS_MIN_GAIN) => 1,
+        _ => threads,
+    };
     let mut ort = OrtRuntime::with_options(&for_ort, ort::session::builder::GraphOptimizationLevel::Level3, threads)?;
     let (ort_out, ort_run_ms) = timed_runs(&mut ort, &feeds)?;
     let rel_l2_vs_ort = tract_out.iter().zip(&ort_out).map(|((_, a), (_, b))| compare(&b.data.to_f64(), &a.data.to_f64()).rel_l2).fold(0.0, f64::max);
@@ -133,9 +157,24 @@ pub fn write(dir: &Path, model: ModelProto, float: Option<ModelProto>, threads: 
         int8,
         depthwise_split: split.into_iter().chain(left).collect(),
         conv_tiles,
+        one_thread_ms,
+        all_threads_ms,
+        fastest_threads,
     };
     write_atomic(&dir.join("tract.yaml"), yaml_serde::to_string(&artifact)?.as_bytes())?;
     Ok((artifact, model.clone()))
+}
+
+/// tract's median latency on one thread and on `threads`, interleaved, every run after the
+/// pause `verify::latency::interleaved` takes: frames from a camera come with gaps, and after
+/// one tract's rayon workers have gone to sleep and each parallel operator pays to wake them.
+/// Measured on the trained tiny v5 at 256x192, 2 cores: 10.4 ms on 2 threads back to back,
+/// 15.6 ms on 2 threads with a 60 ms pause before each run, 12.7 ms on one thread either way.
+fn time_threads(model: &ModelProto, feeds: &[(String, Tensor)], threads: usize) -> Result<(f64, f64)> {
+    let mut one = TractRuntime::new(model, feeds, 1)?;
+    let mut all = TractRuntime::new(model, feeds, threads)?;
+    let lat = interleaved(&mut [("one".into(), &mut one, feeds.to_vec()), ("all".into(), &mut all, feeds.to_vec())], THREAD_RUNS)?;
+    Ok((lat[0].median_ms, lat[1].median_ms))
 }
 
 /// Whether the model computes in integers (QDQ or QLinear operators).
