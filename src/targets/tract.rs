@@ -28,8 +28,8 @@ use crate::onnx::proto::ModelProto;
 use crate::runtime::ort_runtime::OrtRuntime;
 use crate::runtime::tract_runtime::{typed_model, TractRuntime};
 use crate::runtime::Runtime;
-use crate::verify::latency::interleaved;
 use crate::tensor::Tensor;
+use crate::verify::latency::interleaved;
 use anyhow::{anyhow, bail, Result};
 use std::path::Path;
 use std::time::Instant;
@@ -69,7 +69,7 @@ pub struct TractArtifact {
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub conv_tiles: Vec<super::tract_tiles::ConvForm>,
     /// tract's median on one thread and on `threads`, each run after a pause (see
-    /// [`time_threads`]); absent when `threads` is 1.
+    /// `time_threads`); absent when `threads` is 1.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub one_thread_ms: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
