@@ -63,6 +63,13 @@ pub fn fresh_name(g: &GraphProto, base: &str) -> String {
     (0..).map(|i| if i == 0 { base.to_string() } else { format!("{base}_{i}") }).find(|n| !used.contains(n.as_str())).expect("unbounded")
 }
 
+/// Adds `t` as an initializer under a fresh name derived from `base`; returns the name.
+pub fn add_constant(g: &mut GraphProto, base: &str, t: &crate::tensor::Tensor) -> String {
+    let name = fresh_name(g, base);
+    g.initializer.push(crate::onnx::tensor_proto::from_tensor(&name, t));
+    name
+}
+
 /// Makes every reader of `from` read `to` instead (graph outputs keep their names: when
 /// `from` is a graph output, the value `to` is renamed to `from` where it is produced).
 /// Returns false, changing nothing, when that rename is impossible (`to` is an input,

@@ -17,9 +17,9 @@
 //! Reports: the convolutions split (kernel, bands) and the wide ones left, with the reason.
 
 use crate::onnx::attr;
-use crate::onnx::edit::{fresh_name, initializer, set_initializer};
+use crate::onnx::edit::{add_constant, fresh_name, initializer};
 use crate::onnx::proto::{GraphProto, ModelProto, NodeProto};
-use crate::onnx::tensor_proto::{from_tensor, to_tensor};
+use crate::onnx::tensor_proto::to_tensor;
 use crate::pipeline::{Pass, PassContext};
 use crate::tensor::Tensor;
 use anyhow::Result;
@@ -193,8 +193,7 @@ fn band_nodes(g: &mut GraphProto, i: usize, weights: &Tensor, geo: &Geometry, ba
                 }
             }
         }
-        let wname = fresh_name(g, &format!("{base}_band{b}_w"));
-        set_initializer(g, from_tensor(&wname, &Tensor::f32(vec![c, 1, bh, bw], bw_data)));
+        let wname = add_constant(g, &format!("{base}_band{b}_w"), &Tensor::f32(vec![c, 1, bh, bw], bw_data));
         let mut input = vec![old.input[0].clone(), wname];
         if b == 0 {
             input.extend(old.input.get(2).filter(|s| !s.is_empty()).cloned());

@@ -23,9 +23,8 @@
 use crate::ir::graph::Graph;
 use crate::ir::shapes::{infer, Inferred};
 use crate::onnx::attr;
-use crate::onnx::edit::{default_opset, fresh_name, initializer, set_initializer};
+use crate::onnx::edit::{add_constant, default_opset, fresh_name, initializer};
 use crate::onnx::proto::{GraphProto, ModelProto, NodeProto};
-use crate::onnx::tensor_proto::from_tensor;
 use crate::pipeline::{Pass, PassContext};
 use crate::tensor::{Tensor, TensorData};
 use anyhow::Result;
@@ -177,11 +176,7 @@ pub fn tile(g: &mut GraphProto, plan: &Plan) -> Result<()> {
     let i = g.node.iter().position(|n| n.name == plan.node).ok_or_else(|| anyhow::anyhow!("no node named '{}'", plan.node))?;
     let old = g.node[i].clone();
     let pads = attr::ints(&old, "pads").unwrap_or(vec![0; 4]);
-    let int = |g: &mut GraphProto, base: &str, v: i64| {
-        let name = fresh_name(g, base);
-        set_initializer(g, from_tensor(&name, &Tensor::new(vec![1], TensorData::I64(vec![v]))));
-        name
-    };
+    let int = |g: &mut GraphProto, base: &str, v: i64| add_constant(g, base, &Tensor::new(vec![1], TensorData::I64(vec![v])));
     let axis = int(g, &format!("{}_width_axis", old.name), 3);
     let mut nodes = Vec::new();
     let mut outputs = Vec::new();

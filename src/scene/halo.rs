@@ -30,9 +30,8 @@
 
 use crate::ir::{infer, Graph};
 use crate::onnx::attr;
-use crate::onnx::edit::{expose_outputs, fresh_name, sort_topologically};
+use crate::onnx::edit::{add_constant, expose_outputs, fresh_name, sort_topologically};
 use crate::onnx::proto::{GraphProto, ModelProto, NodeProto};
-use crate::onnx::tensor_proto::from_tensor;
 use crate::runtime::ort_runtime::OrtRuntime;
 use crate::prune::ridge::Moments;
 use crate::scene::Roi;
@@ -393,15 +392,11 @@ fn emit(g: &mut GraphProto, read: &Read, p: &Place, strips: &BTreeMap<(String, u
 }
 
 pub(super) fn constant(g: &mut GraphProto, base: &str, shape: Vec<usize>, v: Vec<f32>) -> String {
-    let name = fresh_name(g, base);
-    g.initializer.push(from_tensor(&name, &Tensor::f32(shape, v)));
-    name
+    add_constant(g, base, &Tensor::f32(shape, v))
 }
 
 fn constant_i64s(g: &mut GraphProto, base: &str, v: Vec<i64>) -> String {
-    let name = fresh_name(g, base);
-    g.initializer.push(from_tensor(&name, &Tensor::new(vec![v.len()], TensorData::I64(v))));
-    name
+    add_constant(g, base, &Tensor::new(vec![v.len()], TensorData::I64(v)))
 }
 
 /// Appends a node with a fresh output name (its node name is the same) and returns the output.
