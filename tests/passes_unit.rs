@@ -132,8 +132,7 @@ fn wide_depthwise_splits_into_bands_tract_vectorizes_and_computes_the_same() {
     let mut m = wide_depthwise_chain();
     let mut rng = common::Lcg(3);
     let inputs = vec![("x".to_string(), Tensor::f32(vec![1, 3, 20, 24], (0..3 * 480).map(|_| rng.next_f32()).collect()))];
-    let run = |m: &ModelProto, engine| runtime::load(engine, m, &inputs, 1).unwrap().run(&inputs).unwrap();
-    let before = run(&m, Engine::Ort);
+    let before = runtime::load(Engine::Ort, &m, &inputs, 1).unwrap().run(&inputs).unwrap();
     let reports = run_pipeline(&mut m, "split-wide-depthwise");
     let d = &reports[0].details;
     let bands: Vec<usize> = d["split"].as_array().unwrap().iter().map(|s| s["bands"].as_array().unwrap().len()).collect();
@@ -145,12 +144,7 @@ fn wide_depthwise_splits_into_bands_tract_vectorizes_and_computes_the_same() {
         assert!(k[0] * k[1] <= 128, "{} keeps {k:?}", n.name);
     }
     // Another order of the same float sums: float noise, on ORT and on tract.
-    for engine in [Engine::Ort, Engine::Tract] {
-        for ((name, a), (_, b)) in before.iter().zip(run(&m, engine)) {
-            let e = common::rel_l2(a, &b);
-            assert!(e < 1e-6, "{name} on {engine:?}: rel L2 {e:e}");
-        }
-    }
+    assert_float_noise_on_ort_and_tract(&before, &m, &inputs);
 }
 
 /// Convolutions tract would run as its direct spatial convolution, in the geometries a column
@@ -185,8 +179,7 @@ fn conv_column_tiles_compute_the_same_on_ort_and_tract() {
     let mut m = direct_conv_chain();
     let mut rng = common::Lcg(5);
     let inputs = vec![("x".to_string(), Tensor::f32(vec![1, 3, 9, 301], (0..3 * 9 * 301).map(|_| rng.next_f32()).collect()))];
-    let run = |m: &ModelProto, engine| runtime::load(engine, m, &inputs, 1).unwrap().run(&inputs).unwrap();
-    let before = run(&m, Engine::Ort);
+    let before = runtime::load(Engine::Ort, &m, &inputs, 1).unwrap().run(&inputs).unwrap();
     let reports = run_pipeline(&mut m, "{tile-conv-columns: {nodes: [a, b, y, z, nowhere]}}");
     let d = &reports[0].details;
     let tiles: Vec<u64> = d["tiled"].as_array().unwrap().iter().map(|t| t["tiles"].as_u64().unwrap()).collect();
@@ -199,8 +192,15 @@ fn conv_column_tiles_compute_the_same_on_ort_and_tract() {
         at(2) - at(1)
     }).collect();
     assert!(widths.len() == 8 && widths.iter().all(|&w| w <= 127), "{widths:?}");
+    assert_float_noise_on_ort_and_tract(&before, &m, &inputs);
+}
+
+/// `m` on ONNX Runtime and on tract gives `before` (the outputs before a rewrite, on ORT)
+/// within float noise: rel L2 below 1e-6 on every output.
+fn assert_float_noise_on_ort_and_tract(before: &[(String, Tensor)], m: &ModelProto, inputs: &[(String, Tensor)]) {
     for engine in [Engine::Ort, Engine::Tract] {
-        for ((name, a), (_, b)) in before.iter().zip(run(&m, engine)) {
+        let after = runtime::load(engine, m, inputs, 1).unwrap().run(inputs).unwrap();
+        for ((name, a), (_, b)) in before.iter().zip(after) {
             let e = common::rel_l2(a, &b);
             assert!(e < 1e-6, "{name} on {engine:?}: rel L2 {e:e}");
         }
