@@ -8,7 +8,8 @@
 //! graph from the crop's own edge row: each channel at each distance from the edge is a
 //! linear function of every channel of the edge (`linear`: a 1x1 convolution of the edge row;
 //! `halo_rows: N` reads N rows in, an (N x 1) convolution) plus an intercept per position,
-//! least-squares fitted on calibration frames to the full model's own values; `mean` keeps the intercept alone (the rows' average over the frames).
+//! least-squares fitted on calibration frames to the full model's own values; `mean` keeps
+//! the intercept alone (the rows' average over the frames).
 //! Sides where the ROI meets the frame's border keep their padding: the full model pads there
 //! too, so those stay exact.
 //!
