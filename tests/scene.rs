@@ -192,6 +192,44 @@ fn halos_bring_the_crop_closer_to_the_full_model() {
     assert!(worst(&j2) < 0.8 * worst(&jz), "box ROI: worst group error {:.3} with 2-row halos, {:.3} without", worst(&j2), worst(&jz));
 }
 
+/// `recover: {train: estimates}` trains the crop's halos and pool corrections alone, end to
+/// end against the full model: every other initializer stays bit for bit, and the crop gets
+/// closer to the full model on held-out frames.
+#[test]
+fn training_the_estimates_alone_brings_the_crop_closer() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = frames(dir.path());
+    let scene = write(dir.path(), "roi.yaml", "roi: {x: 0, y: 64, w: 256, h: 128}\n");
+    let prefix = "strip-recon, bind-psf, fold-constants, fold-psf-gates, fold-bn, dce";
+    // Fitted closed loop (each estimate on the crop's own values), the start training wants.
+    let crop = "{crop-roi: {closed_loop: true}}";
+    let fitted = write(dir.path(), "fitted.yaml", &format!("name: fitted\npasses: [{prefix}, {crop}, cleanup]\n"));
+    let trained = write(dir.path(), "trained.yaml", &format!("name: trained\npasses: [{prefix}, {crop}, {{recover: {{train: estimates, minutes: 1.0, epochs: 20, frames: 96, batch: 8, lr: 0.003}}}}, cleanup]\n"));
+    let model = repo().join("models/trained").join(MODELS[0]);
+    let (full, a, b) = (dir.path().join("full"), dir.path().join("fitted"), dir.path().join("trained"));
+    compile(&model, "passes/detect-f32.yaml", None, &full);
+    let waves = pass(&compile(&model, fitted.to_str().unwrap(), Some(&scene), &a), "crop-roi")["details"]["halo"]["closed_loop_waves"].as_u64().unwrap();
+    assert!(waves > 1, "closed loop fitted in {waves} waves");
+    let report = compile(&model, trained.to_str().unwrap(), Some(&scene), &b);
+    let r = &pass(&report, "recover")["details"];
+    assert_eq!(r["train"], "estimates");
+    assert_eq!(r["kept"], true, "{r}");
+    let t = &r["training"];
+    assert!(t["held_out_loss_after"].as_f64().unwrap() < t["held_out_loss_before"].as_f64().unwrap(), "{t}");
+    let load = |d: &Path| pdi_compile::onnx::load(&d.join("model.onnx")).unwrap().model.graph.unwrap();
+    let (ga, gb) = (load(&a), load(&b));
+    let changed: Vec<&str> = ga.initializer.iter().zip(&gb.initializer).filter(|(x, y)| x != y).map(|(x, _)| x.name.as_str()).collect();
+    assert_eq!(ga.node, gb.node);
+    assert!(!changed.is_empty() && changed.iter().all(|n| n.contains("_halo_") || n.contains("_frame_")), "trained initializers: {changed:?}");
+    let worst = |j: &Value| j["outputs"][0]["groups"].as_array().unwrap().iter().map(|g| g["ort"]["rel_l2"].as_f64().unwrap()).fold(0.0, f64::max);
+    let (ja, jb) = (verify(&full.join("model.onnx"), &a.join("model.onnx"), &data), verify(&full.join("model.onnx"), &b.join("model.onnx"), &data));
+    println!("fitted: worst rel L2 {:.4}; trained: {:.4}", worst(&ja), worst(&jb));
+    assert!(worst(&jb) < worst(&ja), "trained estimates {:.4} against fitted {:.4}", worst(&jb), worst(&ja));
+    // Without a crop before it there is nothing to train.
+    let r = cli(&["compile", model.to_str().unwrap(), "--pipeline", trained.to_str().unwrap(), "--psf", PSF, "-o", dir.path().join("none").to_str().unwrap()]);
+    assert_eq!(r.code, 2, "{}", r.stderr);
+}
+
 #[test]
 fn bad_scenes_are_refused_with_one_line() {
     let dir = tempfile::tempdir().unwrap();

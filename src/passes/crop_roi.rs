@@ -16,8 +16,9 @@
 //! physics pipeline.
 //! Guarantees: every cropped constant equals the full one's crop bit for bit. The outputs are
 //! *not* the full model's: the halos and the pooled means are estimates. The pass leaves the
-//! full model as the teacher (full frames, cropped values) for `recover`; `verify` measures
-//! agreement on reference detections one coarsest stride inside the ROI.
+//! full model as the teacher (full frames, cropped values) for `recover`, with the halos' and
+//! pools' constants as what `recover: {train: estimates}` trains; `verify` measures agreement
+//! on reference detections one coarsest stride inside the ROI.
 //! Reports: the ROI, the constants cropped, Reshape targets rewritten, the halos (values,
 //! padded reads, and per side their error on the calibration frames relative to zero padding's),
 //! and per pool the chosen fit and its held-out error relative to the uncorrected mean's.
@@ -27,8 +28,8 @@ use crate::pipeline::{Pass, PassContext, Teacher};
 use crate::calib_frames::image_feeds;
 use crate::ir::{infer, Graph};
 use crate::scene::geometry::{self, Cut};
-use crate::scene::halo::{self, Mode};
-use crate::scene::pool;
+use crate::scene::closed_loop;
+use crate::scene::halo::Mode;
 use crate::scene::{set_metadata, SceneMeta};
 use anyhow::{bail, Result};
 
@@ -41,8 +42,8 @@ pub struct Options {
     pub halo: Mode,
     /// Rows (columns) in from the ROI's edge each halo reads: 1, the edge alone, is cheapest
     /// (a 1x1 convolution) and agreed best. Measured on the trained models' ROI crop (200
-    /// held-out frames; agreement mAP@0.5:0.95, then the classes' rel L2 inside the ROI, v5
-    /// w0.25 / v8 w0.25 / tiny): 1 row 0.986 / 0.980 / 0.906 and 0.114 / 0.056 / 0.155; 2 rows
+    /// held-out frames, open-loop fits; agreement mAP@0.5:0.95, then the classes' rel L2
+    /// inside the ROI, v5 w0.25 / v8 w0.25 / tiny): 1 row 0.986 / 0.980 / 0.906 and 0.114 / 0.056 / 0.155; 2 rows
     /// 0.979 / 0.979 / 0.893 and 0.109 / 0.048 / 0.141; 3 rows 0.980 / 0.979 / 0.901 and 0.106 /
     /// 0.048 / 0.137. More rows fit the outputs closer, yet do not agree better: agreement turns
     /// on the few detections near the score threshold. Choosing per strip by held-out fit error
@@ -54,12 +55,17 @@ pub struct Options {
     pub frames: usize,
     /// Whether global average pools get the frame-mean correction (with any halo but `zero`).
     pub pools: bool,
+    /// Whether each halo and pool correction is fitted on the crop's own values, with the
+    /// estimates upstream of it in place ([`crate::scene::closed_loop`]), rather than on the
+    /// full model's. Off by default: it runs the crop once per wave (38 waves on the trained
+    /// w0.25 models: crop-roi took 16-23 s instead of 2-3), and alone it agreed no better.
+    pub closed_loop: bool,
     pub seed: u64,
 }
 
 impl Default for Options {
     fn default() -> Self {
-        Options { halo: Mode::Linear, halo_rows: 1, frames: 64, pools: true, seed: 0 }
+        Options { halo: Mode::Linear, halo_rows: 1, frames: 64, pools: true, closed_loop: false, seed: 0 }
     }
 }
 
@@ -84,13 +90,15 @@ impl Pass for CropRoi {
         let g = super::graph_mut(model)?;
         let (_, [h, w], levels) = geometry::levels(g)?;
         let report = geometry::apply(g, &Cut { window: roi, keep: vec![true; levels.len()] })?;
+        let constants = float_initializers(model);
         let halos = self.halos(model, &before, roi, [h, w], cx)?;
+        let estimates: Vec<String> = float_initializers(model).difference(&constants).cloned().collect();
         meta.roi = Some(roi);
         // The full model, on full frames, is what recovery distills the cropped one from.
         let mut teacher = cx.teacher.borrow_mut();
         match teacher.as_mut() {
-            Some(t) => t.window = Some(roi),
-            None => *teacher = Some(Teacher { model: before, kept: Default::default(), window: Some(roi) }),
+            Some(t) => (t.window, t.estimates) = (Some(roi), estimates),
+            None => *teacher = Some(Teacher { model: before, kept: Default::default(), window: Some(roi), estimates }),
         }
         drop(teacher);
         meta.write(model)?;
@@ -104,6 +112,12 @@ impl Pass for CropRoi {
             "halo": halos,
         }))
     }
+}
+
+/// The names of a model's float initializers.
+fn float_initializers(model: &ModelProto) -> std::collections::BTreeSet<String> {
+    // ONNX's FLOAT is data type 1.
+    model.graph.iter().flat_map(|g| &g.initializer).filter(|t| t.data_type == 1).map(|t| t.name.clone()).collect()
 }
 
 impl CropRoi {
@@ -120,17 +134,17 @@ impl CropRoi {
         }
         let graph = Graph::build(full.graph.as_ref().expect("checked by graph_mut"))?;
         let (feeds, source) = image_feeds(&graph, &infer(&graph), cx.calib.as_deref(), o.frames, o.seed.wrapping_add(29))?;
-        let threads = crate::runtime::all_cores();
-        let r = halo::add(model, full, roi, frame, &feeds, o.halo, o.halo_rows, threads)?;
-        let pools = if o.pools { pool::correct(model, full, roi, frame, &feeds, o.halo, threads)? } else { Vec::new() };
+        let fitted = closed_loop::fit(model, full, roi, frame, &feeds, o.halo, o.halo_rows, o.pools, o.closed_loop, crate::runtime::all_cores())?;
+        let r = fitted.halos;
         Ok(serde_json::json!({
             "mode": o.halo,
             "values": r.values,
             "reads": r.reads,
             "frames": r.frames,
             "calibration": source,
+            "closed_loop_waves": fitted.waves,
             "rel_error_vs_zero": r.rel_error,
-            "pools": pools,
+            "pools": fitted.pools,
         }))
     }
 }

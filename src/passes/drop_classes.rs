@@ -92,7 +92,7 @@ impl Pass for DropClasses {
         let mut teacher = cx.teacher.borrow_mut();
         match teacher.as_mut() {
             Some(t) => t.compose(&rows_kept),
-            None => *teacher = Some(Teacher { model: before, kept: rows_kept, window: None }),
+            None => *teacher = Some(Teacher { model: before, kept: rows_kept, window: None, estimates: Vec::new() }),
         }
         drop(teacher);
 

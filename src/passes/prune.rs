@@ -139,7 +139,7 @@ impl Pass for Prune {
                 t.compose(&kept);
                 t
             }
-            None => Teacher { model: original.clone(), kept: kept.clone(), window: None },
+            None => Teacher { model: original.clone(), kept: kept.clone(), window: None, estimates: Vec::new() },
         };
         cx.teacher.replace(Some(teacher));
         clock.lap("rewrite");

@@ -7,8 +7,10 @@
 //! no labels are read. Trains on a CUDA GPU when torch sees one, else on the CPU.
 //! Guarantees: only initializer values change (nodes, names, shapes and types are checked);
 //! the PSF gate maps, upsampling kernels and decode constants stay as they were (only Conv
-//! weights and biases train); the trained weights are kept only when they bring the worst
-//! output group (boxes, objectness, classes) closer to the teacher on held-out frames.
+//! weights and biases train; with `train: estimates` only the constants of `crop-roi`'s
+//! halos and pool corrections, every weight of the network staying as it was); the trained
+//! values are kept only when they bring the worst output group (boxes, objectness, classes)
+//! closer to the teacher on held-out frames.
 //! Reports: the loss per epoch, device, steps, frames/s and seconds, and the rel L2 per output
 //! group against the teacher on held-out frames before and after.
 
@@ -36,11 +38,22 @@ pub struct Options {
     pub seed: u64,
     /// `cuda` or `cpu`; empty: CUDA when present.
     pub device: String,
+    /// What trains: every Conv weight and bias (`all`), or only the constants `crop-roi`
+    /// fitted, its halos and pool corrections (`estimates`), the network's weights fixed.
+    pub train: Train,
+}
+
+#[derive(serde::Deserialize, serde::Serialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Train {
+    #[default]
+    All,
+    Estimates,
 }
 
 impl Default for Options {
     fn default() -> Self {
-        Options { minutes: 15.0, epochs: 30, lr: 1e-3, frames: 512, batch: 16, seed: 0, device: String::new() }
+        Options { minutes: 15.0, epochs: 30, lr: 1e-3, frames: 512, batch: 16, seed: 0, device: String::new(), train: Train::All }
     }
 }
 
@@ -61,7 +74,7 @@ impl Pass for Recover {
         if o.frames < o.batch || o.batch == 0 || !(o.lr > 0.0) || !(o.minutes > 0.0) {
             bail!("recover needs frames >= batch > 0, lr > 0 and minutes > 0");
         }
-        let Teacher { model: teacher, kept, window } = cx.teacher.borrow().clone().ok_or_else(|| anyhow!("recover distills a pruned or scene-specialized model from the model before: put a prune pass before it in the recipe (or specialize with --scene)"))?;
+        let Teacher { model: teacher, kept, window, estimates } = cx.teacher.borrow().clone().ok_or_else(|| anyhow!("recover distills a pruned or scene-specialized model from the model before: put a prune pass before it in the recipe (or specialize with --scene)"))?;
         // Frames are the teacher's: with a scene ROI the student sees their crop.
         let g = teacher.graph.as_ref().ok_or_else(|| anyhow!("teacher has no graph"))?;
         let graph = Graph::build(g)?;
@@ -78,7 +91,11 @@ impl Pass for Recover {
         let errors = |m: &ModelProto| output_errors(&teacher, m, check, threads, view.as_ref());
         let before = errors(model)?;
         let mut trained = model.clone();
-        let opts = Distill { minutes: o.minutes, epochs: o.epochs, lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone(), window };
+        let trainable = match o.train {
+            Train::All => None,
+            Train::Estimates => Some(present(model, &estimates)?),
+        };
+        let opts = Distill { minutes: o.minutes, epochs: o.epochs, lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone(), window, trainable };
         let outcome = distill(&mut trained, &teacher, &kept, &train.iter().map(image).collect::<Vec<_>>(), &check.iter().map(image).collect::<Vec<_>>(), &opts)?;
         let after = errors(&trained)?;
         let kept = worst_rel_l2(&after) < worst_rel_l2(&before);
@@ -87,6 +104,7 @@ impl Pass for Recover {
         }
         Ok(serde_json::json!({
             "kept": kept,
+            "train": o.train,
             "frames": train.len(),
             "held_out_frames": check.len(),
             "calibration": source,
@@ -94,4 +112,15 @@ impl Pass for Recover {
             "training": outcome,
         }))
     }
+}
+
+/// The crop's estimates still in `model`: a pass between `crop-roi` and `recover` that rewrote
+/// them (pruning cuts the halos' channels too) leaves nothing to train.
+fn present(model: &ModelProto, estimates: &[String]) -> Result<Vec<String>> {
+    let g = model.graph.as_ref().ok_or_else(|| anyhow!("the model has no graph"))?;
+    let left: Vec<String> = estimates.iter().filter(|e| g.initializer.iter().any(|t| &t.name == *e)).cloned().collect();
+    if left.is_empty() {
+        bail!("recover's `train: estimates` trains the halos and pool corrections crop-roi fitted, and this model has none: put it right after crop-roi (with a scene roi and `halo` other than zero)");
+    }
+    Ok(left)
 }

@@ -141,7 +141,7 @@ impl Pass for RknnQat {
 
         let mut heads = crate::prune::recover::split_head_specs(model, &dequantized)?;
         qat::weigh_edges(&mut heads);
-        let schedule = crate::prune::recover::Options { minutes: o.minutes, epochs: o.epochs, lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone(), window: None };
+        let schedule = crate::prune::recover::Options { minutes: o.minutes, epochs: o.epochs, lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone(), window: None, trainable: None };
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         let student = Student { heads, weight_range: at_points::WEIGHT_RANGE, pin_extremes: true };
         let t = qat::train(&quantized, model, student, &frames, &held, &schedule, threads)?;

@@ -38,6 +38,9 @@ pub struct Teacher {
     pub model: ModelProto,
     pub kept: std::collections::HashMap<String, Vec<usize>>,
     pub window: Option<crate::scene::Roi>,
+    /// The initializers `crop-roi` fitted (halos, pool corrections): what `recover` trains with
+    /// `train: estimates`.
+    pub estimates: Vec<String>,
 }
 
 impl Teacher {

@@ -27,6 +27,9 @@ pub struct Options {
     pub device: String,
     /// The teacher's frames are full frames; the student sees this window of them.
     pub window: Option<crate::scene::Roi>,
+    /// The initializers that train (any float initializer, whatever reads it); None: every
+    /// Conv weight and bias.
+    pub trainable: Option<Vec<String>>,
 }
 
 /// What one distillation did, from the worker's own account.
@@ -164,7 +167,7 @@ pub(crate) fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Te
     let mut config = serde_json::json!({
         "student": dir.join("student.onnx"), "teacher": dir.join("teacher.onnx"), "out": dir.join("trained.onnx"),
         "frames": dir.join("frames.npy"), "held_out": dir.join("held_out.npy"), "heads": job.heads, "features": job.features,
-        "window": o.window, "minutes": o.minutes, "epochs": o.epochs, "lr": o.lr, "batch": o.batch, "seed": o.seed,
+        "window": o.window, "trainable": o.trainable, "minutes": o.minutes, "epochs": o.epochs, "lr": o.lr, "batch": o.batch, "seed": o.seed,
         "device": if o.device.is_empty() { serde_json::Value::Null } else { o.device.clone().into() },
         "outputs_to": if job.outputs { serde_json::json!(outputs_to) } else { serde_json::Value::Null },
     });

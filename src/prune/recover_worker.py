@@ -234,9 +234,11 @@ class Graph(torch.nn.Module):
     In a quantized (QDQ) graph they are integers behind DequantizeLinear: each becomes a
     float parameter in integer units, rounded (straight through) and clamped to `weight_qmax`
     (int8 weights) or int32's range (biases) wherever it is read, so the forward is the
-    emitted model's and the parameter keeps what a step moved below one integer."""
+    emitted model's and the parameter keeps what a step moved below one integer.
+    With `only` (a set of initializer names), exactly those float initializers train, whatever
+    reads them: a crop's halo and pool-correction constants, the network's weights fixed."""
 
-    def __init__(self, model, trainable=True, weight_qmax=127, fuse=True, pin_extremes=False, weight_qmin=None):
+    def __init__(self, model, trainable=True, weight_qmax=127, fuse=True, pin_extremes=False, weight_qmin=None, only=None):
         super().__init__()
         g = model.graph
         self.nodes = list(g.node)
@@ -251,7 +253,15 @@ class Graph(torch.nn.Module):
         self.pinned = {}  # parameter key -> mask of integers that must not move
         for t in g.initializer:
             arr = numpy_helper.to_array(t)
-            if trainable and t.name in conv_params and arr.dtype == np.float32:
+            if only is not None:
+                # Exactly the named float initializers train, whichever op reads them.
+                if trainable and t.name in only and arr.dtype == np.float32:
+                    k = f"p{len(self.params)}"
+                    self.params[k] = torch.nn.Parameter(torch.from_numpy(arr.copy()))
+                    self.key[t.name] = k
+                else:
+                    self.consts[t.name] = torch.from_numpy(arr.copy())
+            elif trainable and t.name in conv_params and arr.dtype == np.float32:
                 k = f"p{len(self.params)}"
                 self.params[k] = torch.nn.Parameter(torch.from_numpy(arr.copy()))
                 self.key[t.name] = k
@@ -469,8 +479,9 @@ def setup(cfg):
 def train(cfg):
     dev, gen = setup(cfg)
     student_model = onnx.load(cfg["student"])
+    only = set(cfg["trainable"]) if cfg.get("trainable") is not None else None
     student = Graph(student_model, weight_qmax=cfg.get("weight_qmax", 127), pin_extremes=cfg.get("pin_extremes", False),
-                    weight_qmin=cfg.get("weight_qmin")).to_device(dev)
+                    weight_qmin=cfg.get("weight_qmin"), only=only).to_device(dev)
     heads, features = cfg["heads"], cfg.get("features", [])
     names = [h["value"] for h in heads] + [f["value"] for f in features]
     # The student's copy of a value where it differs (a quantized value's dequantized copy).

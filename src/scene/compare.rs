@@ -70,9 +70,7 @@ impl SceneView {
     /// The ROI of a [1, C, H, W] frame (the frame itself when the scene has no ROI).
     fn crop_image(&self, t: &Tensor) -> Result<Tensor> {
         let Some(r) = self.meta.roi else { return Ok(t.clone()) };
-        let rows: Vec<usize> = (r.y..r.y + r.h).collect();
-        let cols: Vec<usize> = (r.x..r.x + r.w).collect();
-        t.select(2, &rows).and_then(|c| c.select(3, &cols)).ok_or_else(|| anyhow!("frame of shape {:?} does not hold the ROI", t.shape))
+        r.crop(t).ok_or_else(|| anyhow!("frame of shape {:?} does not hold the ROI", t.shape))
     }
 
     /// One line on what is compared.

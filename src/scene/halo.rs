@@ -8,8 +8,9 @@
 //! graph from the crop's own edge row: each channel at each distance from the edge is a
 //! linear function of every channel of the edge (`linear`: a 1x1 convolution of the edge row;
 //! `halo_rows: N` reads N rows in, an (N x 1) convolution) plus an intercept per position,
-//! least-squares fitted on calibration frames to the full model's own values; `mean` keeps
-//! the intercept alone (the rows' average over the frames).
+//! least-squares fitted on calibration frames to the full model's own values (with
+//! `closed_loop`, from the crop's own edge rows: [`super::closed_loop`]); `mean` keeps the
+//! intercept alone (the rows' average over the frames).
 //! Sides where the ROI meets the frame's border keep their padding: the full model pads there
 //! too, so those stay exact.
 //!
@@ -20,7 +21,8 @@
 //! / 0.980 / 0.906 (fitting frames drawn with another seed: 0.985 / 0.980 / 0.894). The edge's
 //! channels together say most of what the rows past it hold: the error on the fitting frames
 //! is 0.16-0.21 of zero padding's. A slope per channel instead of the mix (tried, before the
-//! fix that made these fits reproducible) lost 0.03 / 0.00 / 0.27 of agreement.
+//! fix that made these fits reproducible) lost 0.03 / 0.00 / 0.27 of agreement. Closed loop
+//! gives 0.989 / 0.980 / 0.897.
 //!
 //! The halo is a Slice of the edge, a Conv, an Add and a Concat per padded value (a
 //! Reshape more for a halo deeper than one row, and a Transpose for side columns): operators
@@ -31,7 +33,7 @@
 
 use crate::ir::{infer, Graph};
 use crate::onnx::attr;
-use crate::onnx::edit::{add_constant, expose_outputs, fresh_name, sort_topologically};
+use crate::onnx::edit::{add_constant, expose_outputs, fresh_name};
 use crate::onnx::proto::{GraphProto, ModelProto, NodeProto};
 use crate::runtime::ort_runtime::OrtRuntime;
 use crate::prune::ridge::Moments;
@@ -119,81 +121,147 @@ pub struct Report {
     pub rel_error: BTreeMap<&'static str, f64>,
 }
 
-/// Adds halos to `cropped` (the `full` model cut to `roi` of a `frame`), fitted on `frames`
-/// (feeds of the full model). Only Conv and MaxPool with explicit pads get them.
-pub fn add(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [usize; 2], frames: &[Vec<(String, Tensor)>], mode: Mode, rows: usize, threads: usize) -> Result<Report> {
-    if mode == Mode::Zero {
-        return Ok(Report { reads: 0, values: 0, frames: 0, rel_error: BTreeMap::new() });
-    }
-    let fg = full.graph.as_ref().ok_or_else(|| anyhow::anyhow!("the model has no graph"))?;
-    let inf = infer(&Graph::build(fg)?);
-    let g = cropped.graph.as_mut().ok_or_else(|| anyhow::anyhow!("the model has no graph"))?;
-    let mut places: BTreeMap<String, Place> = BTreeMap::new();
-    let mut reads: BTreeMap<Read, Vec<usize>> = BTreeMap::new();
-    for (i, n) in g.node.iter().enumerate() {
-        if !matches!(n.op_type.as_str(), "Conv" | "MaxPool") || attr::string(n, "auto_pad", "NOTSET") != "NOTSET" {
-            continue;
-        }
-        let Some(pads) = attr::ints(n, "pads").filter(|p| p.len() == 4 && p.iter().any(|&v| v > 0)) else { continue };
-        let Some(place) = place(&inf, &n.input[0], roi, frame) else { continue };
-        let halo: [usize; 4] = std::array::from_fn(|s| (pads[s].max(0) as usize).min(place.outside[s]));
-        if halo.iter().all(|&h| h == 0) {
-            continue;
-        }
-        places.insert(n.input[0].clone(), place);
-        reads.entry(Read { value: n.input[0].clone(), halo }).or_default().push(i);
-    }
-    let mut report = Report { reads: reads.values().map(Vec::len).sum(), values: places.len(), frames: frames.len(), rel_error: BTreeMap::new() };
-    if reads.is_empty() {
-        return Ok(report);
-    }
-    // The deepest halo each side of each value needs: one strip of statistics serves them all.
-    let mut depth: BTreeMap<&str, [usize; 4]> = BTreeMap::new();
-    for r in reads.keys() {
-        let d = depth.entry(r.value.as_str()).or_default();
-        for s in 0..4 {
-            d[s] = d[s].max(r.halo[s]);
-        }
-    }
-    let mut strips: BTreeMap<(String, usize), Strip> = BTreeMap::new();
-    for (v, d) in &depth {
-        let p = places[*v];
-        for s in 0..4 {
-            if d[s] == 0 {
+/// The halos of one cropped model: the values its convolutions and poolings read with padding
+/// past the ROI's edge, where each lies in the full model, and each strip's calibration
+/// values. The strips are collected from the full model; [`Plan::take_edges`] replaces a
+/// value's edge rows with the crop's own (see [`super::closed_loop`]) before [`Plan::emit`]
+/// fits and writes its halos.
+pub struct Plan {
+    places: BTreeMap<String, Place>,
+    reads: BTreeMap<Read, Vec<usize>>,
+    strips: BTreeMap<(String, usize), Strip>,
+    /// Per side: squared error of the halos and of zero padding, summed over emitted strips.
+    errors: BTreeMap<&'static str, (f64, f64)>,
+    frames: usize,
+}
+
+impl Plan {
+    /// Finds the padded reads of `cropped` (the `full` model cut to `roi` of a `frame`) and
+    /// collects their strips from the full model on `frames` (its feeds). Only Conv and
+    /// MaxPool with explicit pads get halos.
+    pub fn new(cropped: &ModelProto, full: &ModelProto, roi: Roi, frame: [usize; 2], frames: &[Vec<(String, Tensor)>], rows: usize, threads: usize) -> Result<Plan> {
+        let fg = full.graph.as_ref().ok_or_else(|| anyhow::anyhow!("the model has no graph"))?;
+        let inf = infer(&Graph::build(fg)?);
+        let g = cropped.graph.as_ref().ok_or_else(|| anyhow::anyhow!("the model has no graph"))?;
+        let mut places: BTreeMap<String, Place> = BTreeMap::new();
+        let mut reads: BTreeMap<Read, Vec<usize>> = BTreeMap::new();
+        for (i, n) in g.node.iter().enumerate() {
+            if !matches!(n.op_type.as_str(), "Conv" | "MaxPool") || attr::string(n, "auto_pad", "NOTSET") != "NOTSET" {
                 continue;
             }
-            let along = if s % 2 == 0 { (p.begin[1], p.begin[1] + p.len[1]) } else { (p.begin[0] - d[0], p.begin[0] + p.len[0] + d[2]) };
-            let rows = rows.min(p.len[s % 2]).max(1);
-            strips.insert((v.to_string(), s), Strip { depth: d[s], rows, along, edge: Vec::new(), past: Vec::new() });
+            let Some(pads) = attr::ints(n, "pads").filter(|p| p.len() == 4 && p.iter().any(|&v| v > 0)) else { continue };
+            let Some(place) = place(&inf, &n.input[0], roi, frame) else { continue };
+            let halo: [usize; 4] = std::array::from_fn(|s| (pads[s].max(0) as usize).min(place.outside[s]));
+            if halo.iter().all(|&h| h == 0) {
+                continue;
+            }
+            places.insert(n.input[0].clone(), place);
+            reads.entry(Read { value: n.input[0].clone(), halo }).or_default().push(i);
+        }
+        // The deepest halo each side of each value needs: one strip of statistics serves them all.
+        let mut depth: BTreeMap<&str, [usize; 4]> = BTreeMap::new();
+        for r in reads.keys() {
+            let d = depth.entry(r.value.as_str()).or_default();
+            for s in 0..4 {
+                d[s] = d[s].max(r.halo[s]);
+            }
+        }
+        let mut strips: BTreeMap<(String, usize), Strip> = BTreeMap::new();
+        for (v, d) in &depth {
+            let p = places[*v];
+            for s in 0..4 {
+                if d[s] == 0 {
+                    continue;
+                }
+                let along = if s % 2 == 0 { (p.begin[1], p.begin[1] + p.len[1]) } else { (p.begin[0] - d[0], p.begin[0] + p.len[0] + d[2]) };
+                let rows = rows.min(p.len[s % 2]).max(1);
+                strips.insert((v.to_string(), s), Strip { depth: d[s], rows, along, edge: Vec::new(), past: Vec::new() });
+            }
+        }
+        if !reads.is_empty() {
+            collect(full, frames, &places, &mut strips, threads)?;
+        }
+        Ok(Plan { places, reads, strips, errors: BTreeMap::new(), frames: frames.len() })
+    }
+
+    /// Each value that gets a halo, with the indices of the nodes that read it padded.
+    pub fn readers(&self) -> BTreeMap<&str, Vec<usize>> {
+        let mut out: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
+        for (r, consumers) in &self.reads {
+            out.entry(r.value.as_str()).or_default().extend(consumers);
+        }
+        out
+    }
+
+    /// Replaces frame `f`'s edge rows of `value`'s strips with `data`, the value as the
+    /// cropped model computes it ([1, C, h, w] over the crop). A side column's strip also
+    /// covers the row halos' corners, which the crop does not hold: those keep the full
+    /// model's values.
+    pub fn take_edges(&mut self, value: &str, f: usize, data: &[f32]) {
+        let Some(p) = self.places.get(value).copied() else { return };
+        let [h, w] = p.len;
+        if data.len() != p.channels * h * w {
+            return;
+        }
+        for s in 0..4 {
+            let Some(strip) = self.strips.get_mut(&(value.to_string(), s)) else { continue };
+            let t = strip.along.1 - strip.along.0;
+            let block = p.channels * strip.rows * t;
+            if strip.edge.len() < (f + 1) * block {
+                continue;
+            }
+            for c in 0..p.channels {
+                for j in 0..strip.rows {
+                    for (x, a) in (strip.along.0..strip.along.1).enumerate() {
+                        let (y, col) = match s {
+                            0 => (j, a.wrapping_sub(p.begin[1])),
+                            2 => (h - 1 - j, a.wrapping_sub(p.begin[1])),
+                            1 => (a.wrapping_sub(p.begin[0]), j),
+                            _ => (a.wrapping_sub(p.begin[0]), w - 1 - j),
+                        };
+                        if y < h && col < w {
+                            strip.edge[f * block + (c * strip.rows + j) * t + x] = data[(c * h + y) * w + col];
+                        }
+                    }
+                }
+            }
         }
     }
-    collect(full, frames, &places, &mut strips, threads)?;
-    let mut fits: BTreeMap<(String, usize), Fit> = BTreeMap::new();
-    let mut sums: BTreeMap<&'static str, (f64, f64)> = BTreeMap::new();
-    for (key, strip) in &strips {
-        let f = fit(strip, places[&key.0].channels, mode);
-        let e = sums.entry(SIDES[key.1]).or_default();
-        e.0 += f.error;
-        e.1 += f.zero_error;
-        fits.insert(key.clone(), f);
-    }
-    report.rel_error = sums.into_iter().map(|(s, (a, b))| (s, (a / b.max(1e-300)).sqrt())).collect();
-    for (read, consumers) in &reads {
-        let p = places[&read.value];
-        let padded = emit(g, read, &p, &strips, &fits);
-        for &i in consumers {
-            let n = &mut g.node[i];
-            n.input[0] = padded.clone();
-            let pads = attr::ints(n, "pads").expect("checked above");
-            let left: Vec<i64> = pads.iter().zip(read.halo).map(|(&p, h)| p - h as i64).collect();
-            n.attribute.retain(|a| a.name != "pads");
-            n.attribute.push(attr::make_ints("pads", left));
+
+    /// Fits `value`'s strips and writes its halos into `g`: each padded read of it reads the
+    /// halo'd value instead, with its padding reduced by the halo. Nodes are only appended, so
+    /// the indices [`Plan::readers`] gave stay valid; the caller sorts the graph at the end.
+    pub fn emit(&mut self, g: &mut GraphProto, value: &str, mode: Mode) {
+        let mut fits: BTreeMap<(String, usize), Fit> = BTreeMap::new();
+        for (key, strip) in self.strips.range((value.to_string(), 0)..=(value.to_string(), 3)) {
+            let f = fit(strip, self.places[&key.0].channels, mode);
+            let e = self.errors.entry(SIDES[key.1]).or_default();
+            e.0 += f.error;
+            e.1 += f.zero_error;
+            fits.insert(key.clone(), f);
+        }
+        for (read, consumers) in self.reads.iter().filter(|(r, _)| r.value == value) {
+            let p = self.places[&read.value];
+            let padded = emit(g, read, &p, &self.strips, &fits);
+            for &i in consumers {
+                let n = &mut g.node[i];
+                n.input[0] = padded.clone();
+                let pads = attr::ints(n, "pads").expect("checked in Plan::new");
+                let left: Vec<i64> = pads.iter().zip(read.halo).map(|(&p, h)| p - h as i64).collect();
+                n.attribute.retain(|a| a.name != "pads");
+                n.attribute.push(attr::make_ints("pads", left));
+            }
         }
     }
-    sort_topologically(g)?;
-    g.value_info.clear();
-    crate::passes::fold_constants::write_value_info(g)?;
-    Ok(report)
+
+    pub fn report(&self) -> Report {
+        Report {
+            reads: self.reads.values().map(Vec::len).sum(),
+            values: self.places.len(),
+            frames: self.frames,
+            rel_error: self.errors.iter().map(|(s, (a, b))| (*s, (a / b.max(1e-300)).sqrt())).collect(),
+        }
+    }
 }
 
 /// Where `value` lies in the full model, when its stride divides the ROI.

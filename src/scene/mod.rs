@@ -10,6 +10,7 @@
 //! max_detections: 100
 //! ```
 
+pub mod closed_loop;
 pub mod compare;
 pub mod geometry;
 pub mod halo;
@@ -44,6 +45,17 @@ impl Roi {
         let (x0, y0) = (self.x as f32 + margin, self.y as f32 + margin);
         let (x1, y1) = ((self.x + self.w) as f32 - margin, (self.y + self.h) as f32 - margin);
         b[0] >= x0 && b[1] >= y0 && b[2] <= x1 && b[3] <= y1
+    }
+
+    /// The ROI of a [.., H, W] image (None when the image does not hold it).
+    pub fn crop(&self, t: &crate::tensor::Tensor) -> Option<crate::tensor::Tensor> {
+        let n = t.shape.len();
+        if n < 2 {
+            return None;
+        }
+        let rows: Vec<usize> = (self.y..self.y + self.h).collect();
+        let cols: Vec<usize> = (self.x..self.x + self.w).collect();
+        t.select(n - 2, &rows).and_then(|c| c.select(n - 1, &cols))
     }
 }
 

@@ -16,8 +16,8 @@
 use super::halo::{constant, node, place, Mode};
 use crate::ir::{infer, Graph};
 use crate::onnx::attr;
-use crate::onnx::edit::{expose_outputs, sort_topologically};
-use crate::onnx::proto::ModelProto;
+use crate::onnx::edit::expose_outputs;
+use crate::onnx::proto::{GraphProto, ModelProto};
 use crate::prune::ridge::Moments;
 use crate::runtime::ort_runtime::OrtRuntime;
 use crate::scene::Roi;
@@ -48,58 +48,86 @@ struct Samples {
     frame: Vec<Vec<f64>>,
 }
 
-/// Corrects every `GlobalAveragePool` of `cropped` (the `full` model cut to `roi` of a
-/// `frame`) whose input lies on the full model's grid, fitted on `frames` (feeds of the full
-/// model).
-pub fn correct(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [usize; 2], frames: &[Vec<(String, Tensor)>], mode: Mode, threads: usize) -> Result<Vec<PoolReport>> {
-    if mode == Mode::Zero || frames.is_empty() {
-        return Ok(Vec::new());
+/// The global average pools of one cropped model and their calibration means: the frame's
+/// (targets) and the ROI's (features), first from the full model; [`Pools::take_means`]
+/// replaces the ROI's with what the crop computes (see [`super::closed_loop`]).
+pub struct Pools {
+    /// Per pool: its node in the cropped model and its input.
+    pub nodes: Vec<(usize, String)>,
+    samples: Vec<Samples>,
+}
+
+impl Pools {
+    /// No pools corrected.
+    pub fn none() -> Pools {
+        Pools { nodes: Vec::new(), samples: Vec::new() }
     }
-    let fg = full.graph.as_ref().ok_or_else(|| anyhow::anyhow!("the model has no graph"))?;
-    let inf = infer(&Graph::build(fg)?);
-    let g = cropped.graph.as_mut().ok_or_else(|| anyhow::anyhow!("the model has no graph"))?;
-    let pools: Vec<(usize, super::halo::Place)> = g
-        .node
-        .iter()
-        .enumerate()
-        .filter(|(_, n)| n.op_type == "GlobalAveragePool")
-        .filter_map(|(i, n)| place(&inf, &n.input[0], roi, frame).map(|p| (i, p)))
-        .collect();
-    if pools.is_empty() {
-        return Ok(Vec::new());
-    }
-    let names: Vec<String> = pools.iter().map(|(i, _)| g.node[*i].input[0].clone()).collect();
-    let mut samples: Vec<Samples> = pools.iter().map(|(_, p)| Samples { channels: p.channels, roi: vec![Vec::new(); p.channels], frame: vec![Vec::new(); p.channels] }).collect();
-    let mut rt = OrtRuntime::with_options(&expose_outputs(full, &names), ort::session::builder::GraphOptimizationLevel::Level1, threads)?;
-    for feed in frames {
-        rt.visit_f32(feed, |seen| {
-            for (k, name) in names.iter().enumerate() {
-                let p = &pools[k].1;
-                let Some((_, data)) = seen.iter().find(|(n, _)| n == name) else { continue };
-                let (h, w) = (p.full[0], p.full[1]);
-                if data.len() != p.channels * h * w {
-                    continue;
-                }
-                for c in 0..p.channels {
-                    let plane = &data[c * h * w..(c + 1) * h * w];
-                    let all: f64 = plane.iter().map(|&v| v as f64).sum();
-                    let inside: f64 = (p.begin[0]..p.begin[0] + p.len[0]).map(|y| plane[y * w + p.begin[1]..y * w + p.begin[1] + p.len[1]].iter().map(|&v| v as f64).sum::<f64>()).sum();
-                    samples[k].frame[c].push(all / (h * w) as f64);
-                    samples[k].roi[c].push(inside / (p.len[0] * p.len[1]) as f64);
-                }
+
+    /// Every `GlobalAveragePool` of `cropped` (the `full` model cut to `roi` of a `frame`)
+    /// whose input lies on the full model's grid, with its means on `frames` (feeds of the
+    /// full model).
+    pub fn new(cropped: &ModelProto, full: &ModelProto, roi: Roi, frame: [usize; 2], frames: &[Vec<(String, Tensor)>], threads: usize) -> Result<Pools> {
+        let fg = full.graph.as_ref().ok_or_else(|| anyhow::anyhow!("the model has no graph"))?;
+        let inf = infer(&Graph::build(fg)?);
+        let g = cropped.graph.as_ref().ok_or_else(|| anyhow::anyhow!("the model has no graph"))?;
+        let pools: Vec<(usize, super::halo::Place)> = g
+            .node
+            .iter()
+            .enumerate()
+            .filter(|(_, n)| n.op_type == "GlobalAveragePool")
+            .filter_map(|(i, n)| place(&inf, &n.input[0], roi, frame).map(|p| (i, p)))
+            .collect();
+        let names: Vec<String> = pools.iter().map(|(i, _)| g.node[*i].input[0].clone()).collect();
+        let mut samples: Vec<Samples> = pools.iter().map(|(_, p)| Samples { channels: p.channels, roi: vec![Vec::new(); p.channels], frame: vec![Vec::new(); p.channels] }).collect();
+        if !pools.is_empty() {
+            let mut rt = OrtRuntime::with_options(&expose_outputs(full, &names), ort::session::builder::GraphOptimizationLevel::Level1, threads)?;
+            for feed in frames {
+                rt.visit_f32(feed, |seen| {
+                    for (k, name) in names.iter().enumerate() {
+                        let p = &pools[k].1;
+                        let Some((_, data)) = seen.iter().find(|(n, _)| n == name) else { continue };
+                        let (h, w) = (p.full[0], p.full[1]);
+                        if data.len() != p.channels * h * w {
+                            continue;
+                        }
+                        for c in 0..p.channels {
+                            let plane = &data[c * h * w..(c + 1) * h * w];
+                            let all: f64 = plane.iter().map(|&v| v as f64).sum();
+                            let inside: f64 = (p.begin[0]..p.begin[0] + p.len[0]).map(|y| plane[y * w + p.begin[1]..y * w + p.begin[1] + p.len[1]].iter().map(|&v| v as f64).sum::<f64>()).sum();
+                            samples[k].frame[c].push(all / (h * w) as f64);
+                            samples[k].roi[c].push(inside / (p.len[0] * p.len[1]) as f64);
+                        }
+                    }
+                })?;
             }
-        })?;
+        }
+        Ok(Pools { nodes: pools.iter().map(|(i, _)| *i).zip(names).collect(), samples })
     }
-    let mut reports = Vec::new();
-    for (k, (i, _)) in pools.iter().enumerate() {
-        let s = &samples[k];
+
+    /// Replaces frame `f`'s ROI means of pool `k` with those of `data`, its input as the
+    /// cropped model computes it ([1, C, h, w]).
+    pub fn take_means(&mut self, k: usize, f: usize, data: &[f32]) {
+        let s = &mut self.samples[k];
+        if s.channels == 0 || data.len() % s.channels != 0 || s.roi[0].len() <= f {
+            return;
+        }
+        let plane = data.len() / s.channels;
+        for c in 0..s.channels {
+            s.roi[c][f] = data[c * plane..(c + 1) * plane].iter().map(|&v| v as f64).sum::<f64>() / plane as f64;
+        }
+    }
+
+    /// Fits pool `k`'s correction and writes it into `g` after the pool: every reader of the
+    /// pooled means reads the corrected ones. Nodes are only appended; the caller sorts.
+    pub fn emit(&self, g: &mut GraphProto, k: usize, mode: Mode) -> Option<PoolReport> {
+        let s = &self.samples[k];
         // A bound on the mix as on the halos' (untrusted channel counts): past it, no correction.
-        if s.roi.first().map_or(0, Vec::len) < FOLDS || s.channels * s.channels > super::halo::MAX_MIX {
-            continue;
+        if mode == Mode::Zero || s.roi.first().map_or(0, Vec::len) < FOLDS || s.channels * s.channels > super::halo::MAX_MIX {
+            return None;
         }
         let (lambda, rel_error) = choose(s, mode);
         let (w, b) = solve(&moments(s, 0..s.roi[0].len()), lambda);
-        let out = g.node[*i].output[0].clone();
+        let out = g.node[self.nodes[k].0].output[0].clone();
         let c = s.channels;
         let mix = constant(g, &format!("{out}_frame_mix"), vec![c, c, 1, 1], w.iter().map(|&v| v as f32).collect());
         let offset = constant(g, &format!("{out}_frame_offset"), vec![c], b.iter().map(|&v| v as f32).collect());
@@ -112,13 +140,8 @@ pub fn correct(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [us
         for o in g.output.iter_mut().filter(|o| o.name == out) {
             o.name = corrected.clone();
         }
-        reports.push(PoolReport { value: names[k].clone(), channels: c, lambda, rel_error });
+        Some(PoolReport { value: self.nodes[k].1.clone(), channels: c, lambda, rel_error })
     }
-    if !reports.is_empty() {
-        sort_topologically(g)?;
-        crate::passes::fold_constants::write_value_info(g)?;
-    }
-    Ok(reports)
 }
 
 /// The moments of frames `range` of one pool.
