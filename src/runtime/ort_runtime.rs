@@ -80,10 +80,7 @@ impl OrtRuntime {
     /// Runs once and shows the float32 outputs to `f` in place, all at once (no copy:
     /// calibration reads hundreds of megabytes of activations per 640x480 frame).
     pub fn visit_f32<R>(&mut self, inputs: &[(String, Tensor)], f: impl FnOnce(&[(&str, &[f32])]) -> R) -> Result<R> {
-        let mut values: Vec<(String, DynValue)> = Vec::with_capacity(inputs.len());
-        for (name, t) in inputs {
-            values.push((name.clone(), to_ort(t).with_context(|| format!("input {name}"))?));
-        }
+        let values = ort_inputs(inputs)?;
         let names = self.output_names();
         let outputs = self.session.run(lend(&values)).map_err(|e| anyhow!("ONNX Runtime failed: {e}"))?;
         let mut seen: Vec<(&str, &[f32])> = Vec::new();
@@ -102,10 +99,7 @@ impl Runtime for OrtRuntime {
     }
 
     fn run(&mut self, inputs: &[(String, Tensor)]) -> Result<NamedTensors> {
-        let mut values: Vec<(String, DynValue)> = Vec::with_capacity(inputs.len());
-        for (name, t) in inputs {
-            values.push((name.clone(), to_ort(t).with_context(|| format!("input {name}"))?));
-        }
+        let values = ort_inputs(inputs)?;
         let names = self.output_names();
         let outputs = self.session.run(lend(&values)).map_err(|e| anyhow!("ONNX Runtime failed: {e}"))?;
         names
@@ -117,6 +111,10 @@ impl Runtime for OrtRuntime {
             })
             .collect()
     }
+}
+
+fn ort_inputs(inputs: &[(String, Tensor)]) -> Result<Vec<(String, DynValue)>> {
+    inputs.iter().map(|(name, t)| Ok((name.clone(), to_ort(t).with_context(|| format!("input {name}"))?))).collect()
 }
 
 /// Inputs lent to a run, not given: an output that is a graph input (a halo's fit exposes the

@@ -23,12 +23,12 @@ use super::halo::{self, Mode, Plan};
 use super::pool::{PoolReport, Pools};
 use super::Roi;
 use crate::ir::Graph;
-use crate::onnx::edit::sort_topologically;
+use crate::onnx::edit::{expose_outputs, sort_topologically};
 use crate::onnx::proto::{GraphProto, ModelProto};
 use crate::runtime::ort_runtime::OrtRuntime;
 use crate::tensor::Tensor;
 use anyhow::{anyhow, Result};
-use std::collections::{BTreeMap, HashMap, HashSet};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 
 pub struct Fitted {
     pub halos: halo::Report,
@@ -49,8 +49,23 @@ struct Wave {
 /// the crop's own values, wave by wave; otherwise all from the full model's.
 #[allow(clippy::too_many_arguments)]
 pub fn fit(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [usize; 2], frames: &[Vec<(String, Tensor)>], mode: Mode, rows: usize, pools: bool, closed: bool, threads: usize) -> Result<Fitted> {
-    let mut plan = Plan::new(cropped, full, roi, frame, frames, rows, threads)?;
-    let mut means = if pools && mode != Mode::Zero { Pools::new(cropped, full, roi, frame, frames, threads)? } else { Pools::none() };
+    let mut plan = Plan::new(cropped, full, roi, frame, rows)?;
+    let mut means = if pools && mode != Mode::Zero { Pools::new(cropped, full, roi, frame)? } else { Pools::none() };
+    // One run of the full model gives every strip's and pool's values.
+    let names: BTreeSet<String> = plan.values().cloned().chain(means.nodes.iter().map(|n| n.1.clone())).collect();
+    if !names.is_empty() {
+        let names: Vec<String> = names.into_iter().collect();
+        let mut rt = OrtRuntime::with_options(&expose_outputs(full, &names), ort::session::builder::GraphOptimizationLevel::Level1, threads)?;
+        for feed in frames {
+            rt.visit_f32(feed, |seen| {
+                for (name, data) in seen {
+                    plan.observe_full(name, data);
+                    means.observe_full(name, data);
+                }
+            })?;
+            plan.frame_done();
+        }
+    }
     let g = cropped.graph.as_ref().ok_or_else(|| anyhow!("the model has no graph"))?;
     let waves = waves(g, &plan.readers(), &means.nodes)?;
     if waves.is_empty() {

@@ -33,9 +33,8 @@
 
 use crate::ir::{infer, Graph};
 use crate::onnx::attr;
-use crate::onnx::edit::{add_constant, expose_outputs, fresh_name};
+use crate::onnx::edit::{add_constant, fresh_name};
 use crate::onnx::proto::{GraphProto, ModelProto, NodeProto};
-use crate::runtime::ort_runtime::OrtRuntime;
 use crate::prune::ridge::Moments;
 use crate::scene::Roi;
 use crate::tensor::{Tensor, TensorData};
@@ -123,9 +122,9 @@ pub struct Report {
 
 /// The halos of one cropped model: the values its convolutions and poolings read with padding
 /// past the ROI's edge, where each lies in the full model, and each strip's calibration
-/// values. The strips are collected from the full model; [`Plan::take_edges`] replaces a
-/// value's edge rows with the crop's own (see [`super::closed_loop`]) before [`Plan::emit`]
-/// fits and writes its halos.
+/// values. The strips are collected from the full model ([`Plan::observe_full`]);
+/// [`Plan::take_edges`] replaces a value's edge rows with the crop's own (see
+/// [`super::closed_loop`]) before [`Plan::emit`] fits and writes its halos.
 pub struct Plan {
     places: BTreeMap<String, Place>,
     reads: BTreeMap<Read, Vec<usize>>,
@@ -136,10 +135,9 @@ pub struct Plan {
 }
 
 impl Plan {
-    /// Finds the padded reads of `cropped` (the `full` model cut to `roi` of a `frame`) and
-    /// collects their strips from the full model on `frames` (its feeds). Only Conv and
-    /// MaxPool with explicit pads get halos.
-    pub fn new(cropped: &ModelProto, full: &ModelProto, roi: Roi, frame: [usize; 2], frames: &[Vec<(String, Tensor)>], rows: usize, threads: usize) -> Result<Plan> {
+    /// Finds the padded reads of `cropped` (the `full` model cut to `roi` of a `frame`), each
+    /// reading `rows` rows in from the edge. Only Conv and MaxPool with explicit pads get halos.
+    pub fn new(cropped: &ModelProto, full: &ModelProto, roi: Roi, frame: [usize; 2], rows: usize) -> Result<Plan> {
         let fg = full.graph.as_ref().ok_or_else(|| anyhow::anyhow!("the model has no graph"))?;
         let inf = infer(&Graph::build(fg)?);
         let g = cropped.graph.as_ref().ok_or_else(|| anyhow::anyhow!("the model has no graph"))?;
@@ -178,10 +176,31 @@ impl Plan {
                 strips.insert((v.to_string(), s), Strip { depth: d[s], rows, along, edge: Vec::new(), past: Vec::new() });
             }
         }
-        if !reads.is_empty() {
-            collect(full, frames, &places, &mut strips, threads)?;
+        Ok(Plan { places, reads, strips, errors: BTreeMap::new(), frames: 0 })
+    }
+
+    /// The full model's values the strips are collected from.
+    pub fn values(&self) -> impl Iterator<Item = &String> {
+        self.places.keys()
+    }
+
+    /// Appends one frame's strips of `value` from `data`, its value in the full model
+    /// ([1, C, H, W]); call it for each of [`Plan::values`], frame by frame, then
+    /// [`Plan::frame_done`].
+    pub fn observe_full(&mut self, value: &str, data: &[f32]) {
+        let Some(p) = self.places.get(value) else { return };
+        if data.len() != p.channels * p.full[0] * p.full[1] {
+            return;
         }
-        Ok(Plan { places, reads, strips, errors: BTreeMap::new(), frames: frames.len() })
+        for s in 0..4 {
+            if let Some(strip) = self.strips.get_mut(&(value.to_string(), s)) {
+                accumulate(strip, s, p, data);
+            }
+        }
+    }
+
+    pub fn frame_done(&mut self) {
+        self.frames += 1;
     }
 
     /// Each value that gets a halo, with the indices of the nodes that read it padded.
@@ -277,28 +296,6 @@ pub(super) fn place(inf: &crate::ir::Inferred, value: &str, roi: Roi, frame: [us
     let begin = [roi.y / sy, roi.x / sx];
     let len = [roi.h / sy, roi.w / sx];
     Some(Place { channels: s[1], full: [s[2], s[3]], begin, len, outside: [begin[0], begin[1], s[2] - begin[0] - len[0], s[3] - begin[1] - len[1]] })
-}
-
-/// Runs the full model on the frames with every halo'd value exposed, and keeps each strip's values.
-fn collect(full: &ModelProto, frames: &[Vec<(String, Tensor)>], places: &BTreeMap<String, Place>, strips: &mut BTreeMap<(String, usize), Strip>, threads: usize) -> Result<()> {
-    let names: Vec<String> = places.keys().cloned().collect();
-    let mut rt = OrtRuntime::with_options(&expose_outputs(full, &names), ort::session::builder::GraphOptimizationLevel::Level1, threads)?;
-    for feed in frames {
-        rt.visit_f32(feed, |seen| {
-            for (name, data) in seen {
-                let Some(p) = places.get(*name) else { continue };
-                if data.len() != p.channels * p.full[0] * p.full[1] {
-                    continue;
-                }
-                for s in 0..4 {
-                    if let Some(strip) = strips.get_mut(&(name.to_string(), s)) {
-                        accumulate(strip, s, p, data);
-                    }
-                }
-            }
-        })?;
-    }
-    Ok(())
 }
 
 /// Appends one frame's edge and strip (rows or columns past side `s`).

@@ -16,12 +16,9 @@
 use super::halo::{constant, node, place, Mode};
 use crate::ir::{infer, Graph};
 use crate::onnx::attr;
-use crate::onnx::edit::expose_outputs;
 use crate::onnx::proto::{GraphProto, ModelProto};
 use crate::prune::ridge::Moments;
-use crate::runtime::ort_runtime::OrtRuntime;
 use crate::scene::Roi;
-use crate::tensor::Tensor;
 use anyhow::Result;
 
 /// Ridge strengths tried, relative to the ROI means' average variance over the frames: from
@@ -49,59 +46,55 @@ struct Samples {
 }
 
 /// The global average pools of one cropped model and their calibration means: the frame's
-/// (targets) and the ROI's (features), first from the full model; [`Pools::take_means`]
+/// (targets) and the ROI's (features), first from the full model ([`Pools::observe_full`]); [`Pools::take_means`]
 /// replaces the ROI's with what the crop computes (see [`super::closed_loop`]).
 pub struct Pools {
     /// Per pool: its node in the cropped model and its input.
     pub nodes: Vec<(usize, String)>,
+    places: Vec<super::halo::Place>,
     samples: Vec<Samples>,
 }
 
 impl Pools {
     /// No pools corrected.
     pub fn none() -> Pools {
-        Pools { nodes: Vec::new(), samples: Vec::new() }
+        Pools { nodes: Vec::new(), places: Vec::new(), samples: Vec::new() }
     }
 
     /// Every `GlobalAveragePool` of `cropped` (the `full` model cut to `roi` of a `frame`)
-    /// whose input lies on the full model's grid, with its means on `frames` (feeds of the
-    /// full model).
-    pub fn new(cropped: &ModelProto, full: &ModelProto, roi: Roi, frame: [usize; 2], frames: &[Vec<(String, Tensor)>], threads: usize) -> Result<Pools> {
+    /// whose input lies on the full model's grid.
+    pub fn new(cropped: &ModelProto, full: &ModelProto, roi: Roi, frame: [usize; 2]) -> Result<Pools> {
         let fg = full.graph.as_ref().ok_or_else(|| anyhow::anyhow!("the model has no graph"))?;
         let inf = infer(&Graph::build(fg)?);
         let g = cropped.graph.as_ref().ok_or_else(|| anyhow::anyhow!("the model has no graph"))?;
-        let pools: Vec<(usize, super::halo::Place)> = g
-            .node
-            .iter()
-            .enumerate()
-            .filter(|(_, n)| n.op_type == "GlobalAveragePool")
-            .filter_map(|(i, n)| place(&inf, &n.input[0], roi, frame).map(|p| (i, p)))
-            .collect();
-        let names: Vec<String> = pools.iter().map(|(i, _)| g.node[*i].input[0].clone()).collect();
-        let mut samples: Vec<Samples> = pools.iter().map(|(_, p)| Samples { channels: p.channels, roi: vec![Vec::new(); p.channels], frame: vec![Vec::new(); p.channels] }).collect();
-        if !pools.is_empty() {
-            let mut rt = OrtRuntime::with_options(&expose_outputs(full, &names), ort::session::builder::GraphOptimizationLevel::Level1, threads)?;
-            for feed in frames {
-                rt.visit_f32(feed, |seen| {
-                    for (k, name) in names.iter().enumerate() {
-                        let p = &pools[k].1;
-                        let Some((_, data)) = seen.iter().find(|(n, _)| n == name) else { continue };
-                        let (h, w) = (p.full[0], p.full[1]);
-                        if data.len() != p.channels * h * w {
-                            continue;
-                        }
-                        for c in 0..p.channels {
-                            let plane = &data[c * h * w..(c + 1) * h * w];
-                            let all: f64 = plane.iter().map(|&v| v as f64).sum();
-                            let inside: f64 = (p.begin[0]..p.begin[0] + p.len[0]).map(|y| plane[y * w + p.begin[1]..y * w + p.begin[1] + p.len[1]].iter().map(|&v| v as f64).sum::<f64>()).sum();
-                            samples[k].frame[c].push(all / (h * w) as f64);
-                            samples[k].roi[c].push(inside / (p.len[0] * p.len[1]) as f64);
-                        }
-                    }
-                })?;
+        let mut pools = Pools::none();
+        for (i, n) in g.node.iter().enumerate().filter(|(_, n)| n.op_type == "GlobalAveragePool") {
+            if let Some(p) = place(&inf, &n.input[0], roi, frame) {
+                pools.nodes.push((i, n.input[0].clone()));
+                pools.samples.push(Samples { channels: p.channels, roi: vec![Vec::new(); p.channels], frame: vec![Vec::new(); p.channels] });
+                pools.places.push(p);
             }
         }
-        Ok(Pools { nodes: pools.iter().map(|(i, _)| *i).zip(names).collect(), samples })
+        Ok(pools)
+    }
+
+    /// Appends one frame's means of every pool reading `value` from `data`, its value in the
+    /// full model ([1, C, H, W]).
+    pub fn observe_full(&mut self, value: &str, data: &[f32]) {
+        for k in (0..self.nodes.len()).filter(|&k| self.nodes[k].1 == value) {
+            let p = &self.places[k];
+            let (h, w) = (p.full[0], p.full[1]);
+            if data.len() != p.channels * h * w {
+                continue;
+            }
+            for c in 0..p.channels {
+                let plane = &data[c * h * w..(c + 1) * h * w];
+                let all: f64 = plane.iter().map(|&v| v as f64).sum();
+                let inside: f64 = (p.begin[0]..p.begin[0] + p.len[0]).map(|y| plane[y * w + p.begin[1]..y * w + p.begin[1] + p.len[1]].iter().map(|&v| v as f64).sum::<f64>()).sum();
+                self.samples[k].frame[c].push(all / (h * w) as f64);
+                self.samples[k].roi[c].push(inside / (p.len[0] * p.len[1]) as f64);
+            }
+        }
     }
 
     /// Replaces frame `f`'s ROI means of pool `k` with those of `data`, its input as the
