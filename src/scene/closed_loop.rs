@@ -15,11 +15,11 @@
 //! rel L2 inside the ROI 0.114 / 0.056 / 0.155 against 0.109 / 0.059 / 0.151, agreement
 //! mAP@0.5:0.95 0.986 / 0.980 / 0.906 against 0.989 / 0.980 / 0.897; on the v5's box ROI
 //! `{x: 64, y: 64, w: 128, h: 96}` (halos on four sides, 19 reference boxes) 0.963 against
-//! 0.894, boxes' rel L2 0.054 against 0.060. Nearly even, within what a few detections near
-//! the score threshold decide. It costs a run of the crop per wave (38
-//! waves on the w0.25 models), so it is opt-in (`crop-roi: {closed_loop: true}`). It is the
-//! better start for training the estimates end to end (`recover: {train: estimates}`): the
-//! tiny agreed 0.931 trained from closed loop, 0.913 from open loop, 4 minutes each.
+//! 0.894, boxes' rel L2 0.054 against 0.060. Even at best, within what a few detections near
+//! the score threshold decide. It costs a run of the crop per wave (38 waves on the w0.25
+//! models), so it is opt-in (`crop-roi: {closed_loop: true}`). It is the better start for
+//! training the estimates end to end (`recover: {train: estimates}`): the tiny agreed 0.931
+//! trained from closed loop, 0.913 from open loop, 4 minutes each.
 
 use super::halo::{self, Mode, Plan};
 use super::pool::{PoolReport, Pools};
@@ -107,9 +107,8 @@ pub fn fit(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [usize;
 }
 
 /// Groups the halo'd values and the pools by wave: the most halo'd or pooled reads on any path
-/// from the inputs to the value read.
-/// `readers`: each halo'd value and the nodes that read it padded; `pools`: each pool's node
-/// and input.
+/// from the inputs to the value read. `readers`: each halo'd value and the nodes that read it
+/// padded; `pools`: each pool's node and input.
 fn waves(g: &GraphProto, readers: &BTreeMap<&str, Vec<usize>>, pools: &[(usize, String)]) -> Result<BTreeMap<usize, Wave>> {
     // Nodes whose first input is read through an estimate.
     let estimated: HashSet<usize> = readers.values().flatten().copied().chain(pools.iter().map(|n| n.0)).collect();

@@ -199,6 +199,7 @@ impl Plan {
         }
     }
 
+    /// Counts a frame observed: the report's `frames`.
     pub fn frame_done(&mut self) {
         self.frames += 1;
     }

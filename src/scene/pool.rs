@@ -46,8 +46,9 @@ struct Samples {
 }
 
 /// The global average pools of one cropped model and their calibration means: the frame's
-/// (targets) and the ROI's (features), first from the full model ([`Pools::observe_full`]); [`Pools::take_means`]
-/// replaces the ROI's with what the crop computes (see [`super::closed_loop`]).
+/// (targets) and the ROI's (features), both from the full model ([`Pools::observe_full`]);
+/// [`Pools::take_means`] replaces the ROI's with what the crop computes
+/// ([`super::closed_loop`]).
 pub struct Pools {
     /// Per pool: its node in the cropped model and its input.
     pub nodes: Vec<(usize, String)>,
