@@ -11,6 +11,8 @@ use std::path::{Path, PathBuf};
 
 const MODELS: [&str; 3] = ["pdinet_v5_tiny_trained.onnx", "pdinet_v5_w0.25_trained.onnx", "pdinet_v8_w0.25_trained.onnx"];
 const PSF: &str = "calib/single_lwir_blur.npy";
+/// The lossless passes a recipe puts before `crop-roi`.
+const LOSSLESS: &str = "strip-recon, bind-psf, fold-constants, fold-psf-gates, fold-bn, dce";
 
 /// 60 held-out frames of the trained models' evaluation recipe (seed 2, 256x192).
 fn frames(dir: &Path) -> PathBuf {
@@ -146,9 +148,8 @@ fn halos_bring_the_crop_closer_to_the_full_model() {
     let dir = tempfile::tempdir().unwrap();
     let data = frames(dir.path());
     let scene = write(dir.path(), "roi.yaml", "roi: {x: 0, y: 64, w: 256, h: 128}\n");
-    let prefix = "strip-recon, bind-psf, fold-constants, fold-psf-gates, fold-bn, dce";
-    let zero = write(dir.path(), "zero.yaml", &format!("name: zero\npasses: [{prefix}, {{crop-roi: {{halo: zero}}}}, cleanup]\n"));
-    let halo = write(dir.path(), "halo.yaml", &format!("name: halo\npasses: [{prefix}, crop-roi, cleanup]\n"));
+    let zero = write(dir.path(), "zero.yaml", &format!("name: zero\npasses: [{LOSSLESS}, {{crop-roi: {{halo: zero}}}}, cleanup]\n"));
+    let halo = write(dir.path(), "halo.yaml", &format!("name: halo\npasses: [{LOSSLESS}, crop-roi, cleanup]\n"));
     let agreement = |j: &Value| j["detection"]["agreement"]["map50_95"].as_f64().unwrap();
     let worst = |j: &Value| j["outputs"][0]["groups"].as_array().unwrap().iter().map(|g| g["ort"]["rel_l2"].as_f64().unwrap()).fold(0.0, f64::max);
     for m in MODELS {
@@ -182,7 +183,7 @@ fn halos_bring_the_crop_closer_to_the_full_model() {
         assert!(h[side].as_f64().is_some_and(|e| e < 0.8), "side {side}: {h}");
     }
     // Halos two rows in: a (2 x 1) convolution whose taps run the other way on the far sides.
-    let two = write(dir.path(), "two.yaml", &format!("name: two\npasses: [{prefix}, {{crop-roi: {{halo_rows: 2}}}}, cleanup]\n"));
+    let two = write(dir.path(), "two.yaml", &format!("name: two\npasses: [{LOSSLESS}, {{crop-roi: {{halo_rows: 2}}}}, cleanup]\n"));
     let c = dir.path().join("box.two");
     compile(&model, two.to_str().unwrap(), Some(&boxed), &c);
     let full = full.join("model.onnx");
@@ -200,11 +201,10 @@ fn training_the_estimates_alone_brings_the_crop_closer() {
     let dir = tempfile::tempdir().unwrap();
     let data = frames(dir.path());
     let scene = write(dir.path(), "roi.yaml", "roi: {x: 0, y: 64, w: 256, h: 128}\n");
-    let prefix = "strip-recon, bind-psf, fold-constants, fold-psf-gates, fold-bn, dce";
     // Fitted closed loop (each estimate on the crop's own values), the start training wants.
     let crop = "{crop-roi: {closed_loop: true}}";
-    let fitted = write(dir.path(), "fitted.yaml", &format!("name: fitted\npasses: [{prefix}, {crop}, cleanup]\n"));
-    let trained = write(dir.path(), "trained.yaml", &format!("name: trained\npasses: [{prefix}, {crop}, {{recover: {{train: estimates, minutes: 1.0, epochs: 20, frames: 96, batch: 8, lr: 0.003}}}}, cleanup]\n"));
+    let fitted = write(dir.path(), "fitted.yaml", &format!("name: fitted\npasses: [{LOSSLESS}, {crop}, cleanup]\n"));
+    let trained = write(dir.path(), "trained.yaml", &format!("name: trained\npasses: [{LOSSLESS}, {crop}, {{recover: {{train: estimates, minutes: 1.0, epochs: 20, frames: 96, batch: 8, lr: 0.003}}}}, cleanup]\n"));
     let model = repo().join("models/trained").join(MODELS[0]);
     let (full, a, b) = (dir.path().join("full"), dir.path().join("fitted"), dir.path().join("trained"));
     compile(&model, "passes/detect-f32.yaml", None, &full);

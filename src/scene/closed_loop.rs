@@ -65,13 +65,12 @@ pub fn fit(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [usize;
                     means.observe_full(name, data);
                 }
             })?;
-            plan.frame_done();
         }
     }
     let g = cropped.graph.as_ref().ok_or_else(|| anyhow!("the model has no graph"))?;
     let waves = waves(g, &plan.readers(), &means.nodes)?;
     if waves.is_empty() {
-        return Ok(Fitted { halos: plan.report(), pools: Vec::new(), waves: 0 });
+        return Ok(Fitted { halos: plan.report(frames.len()), pools: Vec::new(), waves: 0 });
     }
     let crops: Vec<Vec<(String, Tensor)>> = if closed { frames.iter().map(|f| crop_feed(f, roi, frame)).collect::<Result<_>>()? } else { Vec::new() };
     let mut reports = Vec::new();
@@ -84,11 +83,7 @@ pub fn fit(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [usize;
                 rt.visit_f32(feed, |seen| {
                     for (name, data) in seen {
                         plan.take_edges(name, f, data);
-                        for &k in &wave.pools {
-                            if means.nodes[k].1 == *name {
-                                means.take_means(k, f, data);
-                            }
-                        }
+                        means.take_means(name, f, data);
                     }
                 })?;
             }
@@ -99,11 +94,8 @@ pub fn fit(cropped: &mut ModelProto, full: &ModelProto, roi: Roi, frame: [usize;
         }
         reports.extend(wave.pools.iter().filter_map(|&k| means.emit(g, k, mode)));
     }
-    let g = cropped.graph.as_mut().ok_or_else(|| anyhow!("the model has no graph"))?;
-    sort_topologically(g)?;
-    g.value_info.clear();
-    crate::passes::fold_constants::write_value_info(g)?;
-    Ok(Fitted { halos: plan.report(), pools: reports, waves: if closed { waves.len() } else { 0 } })
+    settle(cropped.graph.as_mut().ok_or_else(|| anyhow!("the model has no graph"))?)?;
+    Ok(Fitted { halos: plan.report(frames.len()), pools: reports, waves: if closed { waves.len() } else { 0 } })
 }
 
 /// Groups the halo'd values and the pools by wave: the most halo'd or pooled reads on any path
@@ -135,12 +127,18 @@ fn waves(g: &GraphProto, readers: &BTreeMap<&str, Vec<usize>>, pools: &[(usize, 
 fn exposing(cropped: &ModelProto, names: &[String]) -> Result<ModelProto> {
     let mut m = cropped.clone();
     let g = m.graph.as_mut().ok_or_else(|| anyhow!("the model has no graph"))?;
-    sort_topologically(g)?;
-    g.value_info.clear();
-    crate::passes::fold_constants::write_value_info(g)?;
+    settle(g)?;
     g.output = names.iter().map(|n| g.value_info.iter().find(|v| &v.name == n).cloned().unwrap_or_else(|| crate::onnx::proto::ValueInfoProto { name: n.clone(), ..Default::default() })).collect();
     crate::passes::dce::eliminate(g)?;
     Ok(m)
+}
+
+/// Puts appended nodes in order and their value_info afresh (no stale shape from before).
+fn settle(g: &mut GraphProto) -> Result<()> {
+    sort_topologically(g)?;
+    g.value_info.clear();
+    crate::passes::fold_constants::write_value_info(g)?;
+    Ok(())
 }
 
 /// A feed of full frames, cropped where an input is a `frame`-sized image.

@@ -131,7 +131,6 @@ pub struct Plan {
     strips: BTreeMap<(String, usize), Strip>,
     /// Per side: squared error of the halos and of zero padding, summed over emitted strips.
     errors: BTreeMap<&'static str, (f64, f64)>,
-    frames: usize,
 }
 
 impl Plan {
@@ -176,7 +175,7 @@ impl Plan {
                 strips.insert((v.to_string(), s), Strip { depth: d[s], rows, along, edge: Vec::new(), past: Vec::new() });
             }
         }
-        Ok(Plan { places, reads, strips, errors: BTreeMap::new(), frames: 0 })
+        Ok(Plan { places, reads, strips, errors: BTreeMap::new() })
     }
 
     /// The full model's values the strips are collected from.
@@ -185,8 +184,7 @@ impl Plan {
     }
 
     /// Appends one frame's strips of `value` from `data`, its value in the full model
-    /// ([1, C, H, W]); call it for each of [`Plan::values`], frame by frame, then
-    /// [`Plan::frame_done`].
+    /// ([1, C, H, W]); call it for each of [`Plan::values`], frame by frame.
     pub fn observe_full(&mut self, value: &str, data: &[f32]) {
         let Some(p) = self.places.get(value) else { return };
         if data.len() != p.channels * p.full[0] * p.full[1] {
@@ -197,11 +195,6 @@ impl Plan {
                 accumulate(strip, s, p, data);
             }
         }
-    }
-
-    /// Counts a frame observed: the report's `frames`.
-    pub fn frame_done(&mut self) {
-        self.frames += 1;
     }
 
     /// Each value that gets a halo, with the indices of the nodes that read it padded.
@@ -274,11 +267,12 @@ impl Plan {
         }
     }
 
-    pub fn report(&self) -> Report {
+    /// The report, for halos fitted on `frames` calibration frames.
+    pub fn report(&self, frames: usize) -> Report {
         Report {
             reads: self.reads.values().map(Vec::len).sum(),
             values: self.places.len(),
-            frames: self.frames,
+            frames,
             rel_error: self.errors.iter().map(|(s, (a, b))| (*s, (a / b.max(1e-300)).sqrt())).collect(),
         }
     }

@@ -98,16 +98,18 @@ impl Pools {
         }
     }
 
-    /// Replaces frame `f`'s ROI means of pool `k` with those of `data`, its input as the
-    /// cropped model computes it ([1, C, h, w]).
-    pub fn take_means(&mut self, k: usize, f: usize, data: &[f32]) {
-        let s = &mut self.samples[k];
-        if s.channels == 0 || data.len() % s.channels != 0 || s.roi[0].len() <= f {
-            return;
-        }
-        let plane = data.len() / s.channels;
-        for c in 0..s.channels {
-            s.roi[c][f] = data[c * plane..(c + 1) * plane].iter().map(|&v| v as f64).sum::<f64>() / plane as f64;
+    /// Replaces frame `f`'s ROI means of every pool reading `value` with those of `data`, the
+    /// value as the cropped model computes it ([1, C, h, w]).
+    pub fn take_means(&mut self, value: &str, f: usize, data: &[f32]) {
+        for k in (0..self.nodes.len()).filter(|&k| self.nodes[k].1 == value) {
+            let s = &mut self.samples[k];
+            if s.channels == 0 || data.len() % s.channels != 0 || s.roi[0].len() <= f {
+                continue;
+            }
+            let plane = data.len() / s.channels;
+            for c in 0..s.channels {
+                s.roi[c][f] = data[c * plane..(c + 1) * plane].iter().map(|&v| v as f64).sum::<f64>() / plane as f64;
+            }
         }
     }
 
