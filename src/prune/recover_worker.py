@@ -281,11 +281,27 @@ class Graph(torch.nn.Module):
             if n.op_type == "Constant":
                 self.consts[n.output[0]] = torch.from_numpy(numpy_helper.to_array(n.attribute[0].t).copy())
         self.plans = {}  # wanted values -> the nodes they need, computed once per request
+        self.layout = torch.contiguous_format
 
     def to_device(self, dev):
-        self.consts = {k: v.to(dev) for k, v in self.consts.items()}
-        self.pinned = {k: (m.to(dev), v.to(dev)) for k, (m, v) in self.pinned.items()}
-        return self.to(dev)
+        """Moves the graph to `dev`. On the CPU images and convolution weights go channels-last
+        (NHWC): oneDNN's convolutions, forward and backward, then skip the layout reorders
+        they pay on NCHW. Measured on the pruned width-0.25 v5, batch 16, 2 cores: a training
+        step 0.17-0.20 s against 0.32 s; its 19-minute recovery ran 58 frames/s against 32.
+        Same products, summed in another order (the op check runs this layout)."""
+        if dev.type == "cpu":
+            self.layout = torch.channels_last
+        self.consts = {k: self.laid(v.to(dev)) for k, v in self.consts.items()}
+        self.pinned = {k: (self.laid(m.to(dev)), self.laid(v.to(dev))) for k, (m, v) in self.pinned.items()}
+        self.to(dev)
+        with torch.no_grad():
+            for p in self.params.values():
+                p.data = self.laid(p.data)
+        return self
+
+    def laid(self, x):
+        """A 4-D tensor in the graph's memory layout (values are unchanged)."""
+        return x.contiguous(memory_format=self.layout) if x.dim() == 4 else x
 
     def restore_pinned(self):
         """Puts pinned integers back where they started (after an optimizer step)."""
@@ -307,7 +323,7 @@ class Graph(torch.nn.Module):
 
     def forward(self, x, wanted):
         """The values named in `wanted`, computing only what they need."""
-        env = {self.input: x}
+        env = {self.input: self.laid(x)}
         key = tuple(wanted)
         if key not in self.plans:
             self.plans[key] = cone(self.nodes, wanted)
@@ -331,9 +347,9 @@ class Graph(torch.nn.Module):
                 k = self.key[t.name]
                 p = self.params[k].detach()
                 if k in self.bounds:
-                    arr = torch.round(p.clamp(*self.bounds[k])).cpu().numpy().astype(numpy_helper.to_array(t).dtype)
+                    arr = torch.round(p.clamp(*self.bounds[k])).contiguous().cpu().numpy().astype(numpy_helper.to_array(t).dtype)
                 else:
-                    arr = p.cpu().numpy().astype(np.float32)
+                    arr = p.contiguous().cpu().numpy().astype(np.float32)
                 t.CopyFrom(numpy_helper.from_array(arr, t.name))
 
     def param_groups(self, lr, relative):
@@ -561,7 +577,7 @@ def save_outputs(g, model, frames, folder):
     with torch.no_grad():
         per_frame = [g(frames[i:i + 1], names) for i in range(len(frames))]
     for k in range(len(names)):
-        np.save(os.path.join(folder, f"out{k}.npy"), torch.cat([f[k] for f in per_frame]).cpu().numpy().astype(np.float32))
+        np.save(os.path.join(folder, f"out{k}.npy"), torch.cat([f[k] for f in per_frame]).contiguous().cpu().numpy().astype(np.float32))
 
 
 def check(model_path, frames_path):
@@ -582,12 +598,12 @@ def check(model_path, frames_path):
     so = ort.SessionOptions()
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
     sess = ort.InferenceSession(exposed.SerializeToString(), so, providers=["CPUExecutionProvider"])
-    g = Graph(m, trainable=False)
+    g = Graph(m, trainable=False).to_device(torch.device("cpu"))  # the layout training runs in
     x = np.load(frames_path)[:2]
     worst = {}
 
     def compare(op, r, v):
-        r, v = r.astype(np.float64), v.numpy().astype(np.float64)
+        r, v = r.astype(np.float64), v.contiguous().numpy().astype(np.float64)
         if r.shape != v.shape:
             worst[op] = float("inf")
             return
@@ -599,7 +615,7 @@ def check(model_path, frames_path):
     for i in range(len(x)):
         ref = dict(zip([o.name for o in sess.get_outputs()], sess.run(None, {g.input: x[i:i + 1]})))
         ref[g.input] = x[i:i + 1]
-        value = lambda name: None if name == "" else g.consts[name] if name in g.consts else torch.from_numpy(np.asarray(ref[name]))
+        value = lambda name: None if name == "" else g.consts[name] if name in g.consts else g.laid(torch.from_numpy(np.asarray(ref[name])))
         with torch.no_grad():
             for n in m.graph.node:
                 if n.op_type == "Constant" or not all(o in ref for o in n.output if o):
