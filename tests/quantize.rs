@@ -327,7 +327,7 @@ fn quantization_aware_recovery_trains_the_emitted_integers() {
     let dir = tempfile::tempdir().unwrap();
     let fast = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 32");
     let plain = variant(dir.path(), &fast, "error_budget: 0.1", "error_budget: 10.0");
-    let qat = variant(dir.path(), &plain, "error_budget: 10.0", "error_budget: 10.0, qat: {minutes: 2, epochs: 4, lr: 1.0e-3, batch: 8}");
+    let qat = variant(dir.path(), &plain, "error_budget: 10.0", "error_budget: 10.0, qat: {minutes: 2, epochs: 4, lr: 2.0e-3, batch: 8}");
     let tiny = "models/trained/pdinet_v5_tiny_trained.onnx";
     let (a, b) = (dir.path().join("plain"), dir.path().join("qat"));
     compile(tiny, &plain, &a, &[]);
