@@ -13,6 +13,7 @@ use std::path::Path;
 const V5: &str = "models/fixtures/pdinet_v5_input_op17_nofold.onnx";
 const V8: &str = "models/fixtures/pdinet_v8_input_op13_nofold.onnx";
 const PSF: &str = "calib/single_lwir_blur.npy";
+const TINY: &str = "models/trained/pdinet_v5_tiny_trained.onnx";
 
 /// `recipe` (a shipped pipeline) with `from` replaced by `to`, written into `dir`.
 fn variant(dir: &Path, recipe: &str, from: &str, to: &str) -> String {
@@ -215,7 +216,7 @@ fn float_where_faster_tries_the_heaviest_convolutions_and_follows_the_timings() 
 #[test]
 fn fp16_runs_on_both_runtimes_with_the_decode_in_f32() {
     let dir = tempfile::tempdir().unwrap();
-    for (fixture, bound) in [("models/trained/pdinet_v5_tiny_trained.onnx", 2e-3), (V8, 0.1)] {
+    for (fixture, bound) in [(TINY, 2e-3), (V8, 0.1)] {
         let f32_out = dir.path().join("f32");
         compile(fixture, "passes/detect-f32.yaml", &f32_out, &[]);
         let out = dir.path().join("fp16");
@@ -246,7 +247,7 @@ fn qlinear_form_runs_alike_on_tract_and_ort() {
     let dir = tempfile::tempdir().unwrap();
     let recipe = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 8, max_float_layers: 0, format: qlinear");
     let out = dir.path().join("qlinear");
-    let q = compile("models/trained/pdinet_v5_tiny_trained.onnx", &recipe, &out, &[]);
+    let q = compile(TINY, &recipe, &out, &[]);
     assert!(q["qlinear_convolutions"].as_u64().unwrap() >= 10, "{}", q["qlinear_convolutions"]);
     let m = load(&out.join("model.onnx"));
     let ops: Vec<&str> = m.graph.as_ref().unwrap().node.iter().map(|n| n.op_type.as_str()).collect();
@@ -268,7 +269,7 @@ fn qlinear_form_runs_alike_on_tract_and_ort() {
 fn int8_beats_ort_quantize_static_on_every_channel_group() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("compare");
-    let r = std::process::Command::new(repo().join("scripts/compare-int8")).args(["models/trained/pdinet_v5_tiny_trained.onnx", out.to_str().unwrap()]).env("PDI_BIN", env!("CARGO_BIN_EXE_pdi-compile")).current_dir(repo()).output().unwrap();
+    let r = std::process::Command::new(repo().join("scripts/compare-int8")).args([TINY, out.to_str().unwrap()]).env("PDI_BIN", env!("CARGO_BIN_EXE_pdi-compile")).current_dir(repo()).output().unwrap();
     assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
     let rows: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("comparison.json")).unwrap()).unwrap();
     println!("{}", std::fs::read_to_string(out.join("comparison.md")).unwrap());
@@ -288,10 +289,9 @@ fn learned_rounding_moves_weights_one_step_and_lowers_layer_error() {
     let fast = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 8");
     let nearest = variant(dir.path(), &fast, "error_budget: 0.1", "error_budget: 10.0");
     let learned = variant(dir.path(), &nearest, "error_budget: 10.0", "error_budget: 10.0, rounding: learned, rounding_iterations: 100, rounding_frames: 8");
-    let tiny = "models/trained/pdinet_v5_tiny_trained.onnx";
     let (a, b) = (dir.path().join("nearest"), dir.path().join("learned"));
-    let qa = compile(tiny, &nearest, &a, &[]);
-    let qb = compile(tiny, &learned, &b, &[]);
+    let qa = compile(TINY, &nearest, &a, &[]);
+    let qb = compile(TINY, &learned, &b, &[]);
     assert_eq!(qa["rounding"]["method"], "nearest");
     let r = &qb["rounding"];
     assert_eq!(r["method"], "learned", "{r}");
@@ -328,10 +328,9 @@ fn quantization_aware_recovery_trains_the_emitted_integers() {
     let fast = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 32");
     let plain = variant(dir.path(), &fast, "error_budget: 0.1", "error_budget: 10.0");
     let qat = variant(dir.path(), &plain, "error_budget: 10.0", "error_budget: 10.0, qat: {minutes: 2, epochs: 4, lr: 2.0e-3, batch: 8}");
-    let tiny = "models/trained/pdinet_v5_tiny_trained.onnx";
     let (a, b) = (dir.path().join("plain"), dir.path().join("qat"));
-    compile(tiny, &plain, &a, &[]);
-    let r = compile(tiny, &qat, &b, &[])["qat"].clone();
+    compile(TINY, &plain, &a, &[]);
+    let r = compile(TINY, &qat, &b, &[])["qat"].clone();
     println!("{}", serde_json::to_string_pretty(&r).unwrap());
     assert!(r["training"]["steps"].as_u64().unwrap() >= 4, "{r}");
     let worst = |m: &serde_json::Value| m.as_object().unwrap().iter().filter(|(k, _)| k.contains('/')).map(|(_, v)| v.as_f64().unwrap()).fold(0.0, f64::max);
