@@ -287,7 +287,8 @@ class Graph(torch.nn.Module):
         """Moves the graph to `dev`. On the CPU images and convolution weights go channels-last
         (NHWC): oneDNN's convolutions, forward and backward, then skip the layout reorders
         they pay on NCHW. Measured on the pruned width-0.25 v5, batch 16, 2 cores: a training
-        step 0.17-0.20 s against 0.32 s on the same AVX-512 machine. Same products, summed in another order (the op check runs this layout)."""
+        step 0.17-0.20 s against 0.32 s on the same AVX-512 machine. Same products, summed in
+        another order (the op check runs this layout)."""
         if dev.type == "cpu":
             self.layout = torch.channels_last
         self.consts = {k: self.laid(v.to(dev)) for k, v in self.consts.items()}
