@@ -202,9 +202,18 @@ fn read_tensor(path: &Path) -> Result<Tensor> {
     Ok(Tensor::f32(a.shape, a.data))
 }
 
+/// What `check_ops` measured: per op type, the worst difference from ONNX Runtime on each
+/// value's scale (floored at 1); per form the interpreter trains a Conv in other than plain
+/// torch (`columns`, `depthwise`), the worst difference of its gradients from torch's own.
+#[derive(serde::Deserialize, Debug)]
+pub struct OpCheck {
+    pub ops: std::collections::BTreeMap<String, f64>,
+    pub gradients: std::collections::BTreeMap<String, f64>,
+}
+
 /// Runs every node of `model` in the worker's torch interpreter and in ONNX Runtime on
-/// `frames`: the worst difference per op type, on each value's scale (floored at 1).
-pub fn check_ops(model: &ModelProto, frames: &[Tensor]) -> Result<std::collections::BTreeMap<String, f64>> {
+/// `frames`, and the interpreter's own Conv gradients against torch's.
+pub fn check_ops(model: &ModelProto, frames: &[Tensor]) -> Result<OpCheck> {
     let work = tempfile::tempdir()?;
     let dir = work.path();
     crate::onnx::save(model, &dir.join("model.onnx"))?;
@@ -217,7 +226,7 @@ pub fn check_ops(model: &ModelProto, frames: &[Tensor]) -> Result<std::collectio
         bail!("the op check failed: {}", err.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message"));
     }
     let report: serde_json::Value = serde_json::from_slice(out.stdout.rsplit(|&b| b == b'\n').find(|l| !l.is_empty()).unwrap_or_default())?;
-    serde_json::from_value(report["ops"].clone()).map_err(Into::into)
+    serde_json::from_value(report).map_err(Into::into)
 }
 
 /// Copies `trained`'s initializer values into `model`, refusing anything but new values.

@@ -35,12 +35,83 @@ def pads_of(a, k):
     return p[:k], p[k:]
 
 
-def conv(x, w, b, a):
+# A convolution of an input with at most this many channels that needs no gradient (the
+# image) runs as columns (below): oneDNN vectorizes over input channels, and with one it
+# falls back to a kernel that took 46 ms forward and backward for the width-0.25 v5's stem
+# (batch 16, 256x192, 2 cores), against 8 ms as nine shifted views and a 1x1 convolution.
+# Inside the network the views' gradients cost more than they save (measured: 2x slower).
+FEW_CHANNELS = 4
+
+# A depthwise kernel at least this large (7x7) computes its weight gradient as a depthwise
+# convolution of the frames by the output gradients (below): oneDNN's own took 29 ms for
+# the 15x15 PSF kernel of the same model, against 3 ms.
+LARGE_KERNEL = 49
+
+
+def conv_form(x, w, a):
+    """How `conv` runs: "columns", "depthwise" (its own weight gradient) or None (F.conv2d)."""
+    stride, dilation, groups = a.get("strides", [1, 1]), a.get("dilations", [1, 1]), a.get("group", 1)
+    if dilation != [1, 1]:
+        return None
+    if groups == 1 and x.shape[1] <= FEW_CHANNELS and not x.requires_grad and w.shape[2] * w.shape[3] > 1:
+        return "columns"
+    if stride == [1, 1] and groups == x.shape[1] == w.shape[0] > 1 and w.shape[1] == 1 and w.shape[2] * w.shape[3] >= LARGE_KERNEL:
+        return "depthwise"
+    return None
+
+
+def conv(x, w, b, a, form=True):
+    """An ONNX Conv; `form=False` always runs plain F.conv2d (what `check` compares with)."""
     begin, end = pads_of(a, 2)
     if begin != end:
         x = F.pad(x, (begin[1], end[1], begin[0], end[0]))
         begin = [0, 0]
-    return F.conv2d(x, w, b, a.get("strides", [1, 1]), begin, a.get("dilations", [1, 1]), a.get("group", 1))
+    stride, dilation, groups = a.get("strides", [1, 1]), a.get("dilations", [1, 1]), a.get("group", 1)
+    kind = conv_form(x, w, a) if form else None
+    if kind == "columns":
+        return conv_by_columns(x, w, b, stride, begin)
+    if kind == "depthwise":
+        return DepthwiseConv.apply(x, w, b, begin)
+    return F.conv2d(x, w, b, stride, begin, dilation, groups)
+
+
+def conv_by_columns(x, w, b, stride, pads):
+    """A convolution of a few-channel input as one 1x1 convolution over its kernel's shifted
+    views (im2col in channel-major, then row, then column order: the weight's own)."""
+    (kh, kw), (sh, sw) = w.shape[2:], stride
+    x = F.pad(x, (pads[1], pads[1], pads[0], pads[0]))
+    ho, wo = (x.shape[2] - kh) // sh + 1, (x.shape[3] - kw) // sw + 1
+    views = [x[:, c, i:i + sh * (ho - 1) + 1:sh, j:j + sw * (wo - 1) + 1:sw] for c in range(x.shape[1]) for i in range(kh) for j in range(kw)]
+    cols = torch.stack(views, -1).permute(0, 3, 1, 2)  # channels-last, written once
+    return F.conv2d(cols, w.reshape(w.shape[0], -1, 1, 1), b)
+
+
+class DepthwiseConv(torch.autograd.Function):
+    """A stride-1 depthwise convolution; its weight gradient, a correlation of each channel's
+    input with its output gradient summed over the batch, runs as one depthwise convolution
+    with the batch folded into the channels (the gradient becomes the kernel)."""
+
+    @staticmethod
+    def forward(ctx, x, w, b, pads):
+        ctx.save_for_backward(x, w)
+        ctx.pads, ctx.has_bias = pads, b is not None
+        return F.conv2d(x, w, b, 1, pads, 1, x.shape[1])
+
+    @staticmethod
+    def backward(ctx, g):
+        x, w = ctx.saved_tensors
+        (ph, pw), (n, c, h, wd), (kh, kw) = ctx.pads, x.shape, w.shape[2:]
+        gx = gw = gb = None
+        if ctx.needs_input_grad[0]:
+            gx = torch.ops.aten.convolution_backward(g, x, w, None, [1, 1], [ph, pw], [1, 1], False, [0, 0], c, [True, False, False])[0]
+        if ctx.needs_input_grad[1]:
+            xs = F.pad(x, (pw, pw, ph, ph)).transpose(0, 1).reshape(1, c * n, h + 2 * ph, wd + 2 * pw)
+            gs = g.transpose(0, 1).reshape(c * n, 1, *g.shape[2:])
+            gw = F.conv2d(xs, gs, None, 1, 0, 1, c * n).view(c, n, kh, kw).sum(1, keepdim=True)
+            gw = gw.contiguous(memory_format=torch.channels_last if w.is_contiguous(memory_format=torch.channels_last) else torch.contiguous_format)
+        if ctx.has_bias and ctx.needs_input_grad[2]:
+            gb = g.sum((0, 2, 3))
+        return gx, gw, gb, None
 
 
 def conv_transpose(x, w, b, a):
@@ -223,6 +294,25 @@ def fused_pairs(g):
     return fused
 
 
+def silu_pairs(g):
+    """Mul outputs that are x * Sigmoid(x), the Sigmoid read by nothing else, with x's name:
+    each runs as torch's SiLU, one pass forward and one backward instead of three (the same
+    function; `check` compares it with ONNX Runtime's Mul)."""
+    readers = {}
+    for n in g.node:
+        for i in n.input:
+            readers.setdefault(i, []).append(n)
+    outputs = {o.name for o in g.output}
+    pairs = {}
+    for n in g.node:
+        if n.op_type != "Sigmoid" or n.output[0] in outputs:
+            continue
+        rs = readers.get(n.output[0], [])
+        if len(rs) == 1 and rs[0].op_type == "Mul" and sorted(rs[0].input) == sorted([n.input[0], n.output[0]]):
+            pairs[rs[0].output[0]] = n.input[0]
+    return pairs
+
+
 # The largest int32 a float32 holds exactly (its spacing is 128 just below 2^31): int32
 # biases trained as float32 stay in range when written back.
 INT32_IN_F32 = 2 ** 31 - 128
@@ -243,6 +333,9 @@ class Graph(torch.nn.Module):
         g = model.graph
         self.nodes = list(g.node)
         self.fused = fused_pairs(g) if fuse else {}
+        self.silu = silu_pairs(g) if fuse else {}
+        self.silu_gates = {n.output[0] for n in self.nodes if n.op_type == "Sigmoid" and n.input[0] in self.silu.values()
+                           and any(n.output[0] in m.input for m in self.nodes if m.output[0] in self.silu)}
         self.input = [i.name for i in g.input if i.name not in {t.name for t in g.initializer}][0]
         conv_params = {i for n in self.nodes if n.op_type == "Conv" for i in n.input[1:]}
         integer_params = {n.input[0] for n in self.nodes if n.op_type == "DequantizeLinear" and n.output[0] in conv_params}
@@ -335,6 +428,11 @@ class Graph(torch.nn.Module):
                 continue
             if n.op_type == "DequantizeLinear" and n.input[0] in self.fused:
                 env[n.output[0]] = env[n.input[0]]
+                continue
+            if n.op_type == "Sigmoid" and n.output[0] in self.silu_gates and n.output[0] not in key:
+                continue
+            if n.op_type == "Mul" and n.output[0] in self.silu:
+                env[n.output[0]] = F.silu(env[self.silu[n.output[0]]])
                 continue
             for o, val in zip(n.output, run_node(n, [self.value(i, env) for i in n.input])):
                 env[o] = val
@@ -584,7 +682,9 @@ def check(model_path, frames_path):
     """Every node of the model by the interpreter against ONNX Runtime, on the frames: each
     node alone, fed ONNX Runtime's own values for its inputs (in a quantized graph a float-noise
     difference upstream flips a rounding step, which is not the op's error); the fused
-    QuantizeLinear -> DequantizeLinear pairs count as DequantizeLinear."""
+    QuantizeLinear -> DequantizeLinear pairs count as DequantizeLinear, the SiLU pairs as Mul,
+    and a Conv counts in each form training runs it in (`conv_form`), whose gradients are
+    also compared with F.conv2d's (`conv_gradient_errors`)."""
     import onnxruntime as ort
 
     m = onnx.load(model_path)
@@ -612,6 +712,7 @@ def check(model_path, frames_path):
         worst[op] = max(worst.get(op, 0.0), float(np.abs(r - v).max() / max(np.abs(r).max(), 1.0)))
 
     producer = {o: n for n in m.graph.node for o in n.output}
+    gradients = {}
     for i in range(len(x)):
         ref = dict(zip([o.name for o in sess.get_outputs()], sess.run(None, {g.input: x[i:i + 1]})))
         ref[g.input] = x[i:i + 1]
@@ -622,10 +723,47 @@ def check(model_path, frames_path):
                     continue
                 for o, v in zip(n.output, run_node(n, [value(name) for name in n.input])):
                     compare(n.op_type, ref[o], v)
+                if n.op_type == "Conv":
+                    # Training runs a Conv whose input needs a gradient in another form.
+                    with torch.enable_grad():
+                        v = run_node(n, [value(n.input[0]).detach().clone().requires_grad_(True)] + [value(name) for name in n.input[1:]])[0]
+                    compare("Conv", ref[n.output[0]], v.detach())
+                    for form, err in conv_gradient_errors(n, [value(name) for name in n.input]).items():
+                        gradients[form] = max(gradients.get(form, 0.0), err)
+                if n.op_type == "Mul" and n.output[0] in g.silu:
+                    compare("Mul", ref[n.output[0]], F.silu(value(g.silu[n.output[0]])))
                 if n.op_type == "DequantizeLinear" and n.input[0] in g.fused:
                     q = producer[n.input[0]]
                     compare(n.op_type, ref[n.output[0]], fake_quant(value(q.input[0]), *g.fused[n.input[0]]))
-    print(json.dumps({"ops": worst}))
+    print(json.dumps({"ops": worst, "gradients": gradients}))
+
+
+def conv_gradient_errors(n, v):
+    """For each form `conv` trains node n in (input needing a gradient or not), the worst
+    difference of its gradients (input, weight, bias) from F.conv2d's under a random output
+    gradient, on each gradient's scale (floored at 1e-12): {form: error}."""
+    a, errors = attrs(n), {}
+    for needs_x in (False, True):
+        x = v[0].detach().clone().requires_grad_(needs_x)
+        form = conv_form(x, v[1], a)
+        if form is None:
+            continue
+        runs = []
+        for use_form in (True, False):
+            xs = x.detach().clone().requires_grad_(needs_x)
+            ps = [t.detach().clone().requires_grad_(True) if t is not None else None for t in v[1:3]]
+            with torch.enable_grad():
+                y = conv(xs, ps[0], ps[1] if len(ps) > 1 else None, a, form=use_form)
+                g = torch.randn(y.shape, generator=torch.Generator().manual_seed(0))
+                y.backward(g.contiguous(memory_format=torch.channels_last) if y.dim() == 4 else g)
+            runs.append([t.grad for t in [xs] + ps if t is not None and t.grad is not None])
+        fast, plain = runs
+        if len(fast) != len(plain):
+            errors[form] = float("inf")
+            continue
+        worst = max(float((f - p).abs().max() / max(float(p.abs().max()), 1e-12)) for f, p in zip(fast, plain))
+        errors[form] = max(errors.get(form, 0.0), worst)
+    return errors
 
 
 def emit(obj):
