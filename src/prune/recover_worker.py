@@ -49,9 +49,10 @@ LARGE_KERNEL = 49
 
 
 def conv_form(x, w, a):
-    """How `conv` runs: "columns", "depthwise" (its own weight gradient) or None (F.conv2d)."""
+    """How `conv` runs: "columns", "depthwise" (its own weight gradient) or None (F.conv2d).
+    Only on the CPU: the two forms work around oneDNN's slow kernels (measured there)."""
     stride, dilation, groups = a.get("strides", [1, 1]), a.get("dilations", [1, 1]), a.get("group", 1)
-    if dilation != [1, 1]:
+    if dilation != [1, 1] or x.device.type != "cpu":
         return None
     if groups == 1 and x.shape[1] <= FEW_CHANNELS and not x.requires_grad and w.shape[2] * w.shape[3] > 1:
         return "columns"
