@@ -296,8 +296,8 @@ def fused_pairs(g):
 
 
 def silu_pairs(g):
-    """Mul outputs that are x * Sigmoid(x), the Sigmoid read by nothing else, with x's name:
-    each runs as torch's SiLU, one pass forward and one backward instead of three (the same
+    """Mul outputs that are x * Sigmoid(x), the Sigmoid read by nothing else, with the names of
+    x and of the Sigmoid's output: each runs as torch's SiLU, one pass forward and one backward instead of three (the same
     function; `check` compares it with ONNX Runtime's Mul)."""
     readers = {}
     for n in g.node:
@@ -310,7 +310,7 @@ def silu_pairs(g):
             continue
         rs = readers.get(n.output[0], [])
         if len(rs) == 1 and rs[0].op_type == "Mul" and sorted(rs[0].input) == sorted([n.input[0], n.output[0]]):
-            pairs[rs[0].output[0]] = n.input[0]
+            pairs[rs[0].output[0]] = (n.input[0], n.output[0])
     return pairs
 
 
@@ -335,8 +335,7 @@ class Graph(torch.nn.Module):
         self.nodes = list(g.node)
         self.fused = fused_pairs(g) if fuse else {}
         self.silu = silu_pairs(g) if fuse else {}
-        self.silu_gates = {n.output[0] for n in self.nodes if n.op_type == "Sigmoid" and n.input[0] in self.silu.values()
-                           and any(n.output[0] in m.input for m in self.nodes if m.output[0] in self.silu)}
+        self.silu_gates = {gate for _, gate in self.silu.values()}
         self.input = [i.name for i in g.input if i.name not in {t.name for t in g.initializer}][0]
         conv_params = {i for n in self.nodes if n.op_type == "Conv" for i in n.input[1:]}
         integer_params = {n.input[0] for n in self.nodes if n.op_type == "DequantizeLinear" and n.output[0] in conv_params}
@@ -433,7 +432,7 @@ class Graph(torch.nn.Module):
             if n.op_type == "Sigmoid" and n.output[0] in self.silu_gates and n.output[0] not in key:
                 continue
             if n.op_type == "Mul" and n.output[0] in self.silu:
-                env[n.output[0]] = F.silu(env[self.silu[n.output[0]]])
+                env[n.output[0]] = F.silu(env[self.silu[n.output[0]][0]])
                 continue
             for o, val in zip(n.output, run_node(n, [self.value(i, env) for i in n.input])):
                 env[o] = val
@@ -732,7 +731,7 @@ def check(model_path, frames_path):
                     for form, err in conv_gradient_errors(n, [value(name) for name in n.input]).items():
                         gradients[form] = max(gradients.get(form, 0.0), err)
                 if n.op_type == "Mul" and n.output[0] in g.silu:
-                    compare("Mul", ref[n.output[0]], F.silu(value(g.silu[n.output[0]])))
+                    compare("Mul", ref[n.output[0]], F.silu(value(g.silu[n.output[0]][0])))
                 if n.op_type == "DequantizeLinear" and n.input[0] in g.fused:
                     q = producer[n.input[0]]
                     compare(n.op_type, ref[n.output[0]], fake_quant(value(q.input[0]), *g.fused[n.input[0]]))
