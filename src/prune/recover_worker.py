@@ -270,6 +270,15 @@ def fake_quant(x, scale, zp, lo, hi):
     return torch.fake_quantize_per_tensor_affine(x / scale, 1.0, zp, lo, hi) * scale
 
 
+def readers_of(g):
+    """Value name -> the nodes that read it."""
+    readers = {}
+    for n in g.node:
+        for i in n.input:
+            readers.setdefault(i, []).append(n)
+    return readers
+
+
 def fused_pairs(g):
     """QuantizeLinear outputs read only by DequantizeLinear nodes with the same per-tensor
     scale and zero point, with (scale, zero point, qmin, qmax): such a pair runs as one fake
@@ -277,11 +286,7 @@ def fused_pairs(g):
     round-half-to-even, clamp and straight-through gradient; `check` compares both
     forms with ONNX Runtime)."""
     consts = {t.name: numpy_helper.to_array(t) for t in g.initializer}
-    readers = {}
-    for n in g.node:
-        for i in n.input:
-            readers.setdefault(i, []).append(n)
-    outputs = {o.name for o in g.output}
+    readers, outputs = readers_of(g), {o.name for o in g.output}
     fused = {}
     for n in g.node:
         if n.op_type != "QuantizeLinear" or len(n.input) < 3 or n.output[0] in outputs:
@@ -297,13 +302,10 @@ def fused_pairs(g):
 
 def silu_pairs(g):
     """Mul outputs that are x * Sigmoid(x), the Sigmoid read by nothing else, with the names of
-    x and of the Sigmoid's output: each runs as torch's SiLU, one pass forward and one backward instead of three (the same
-    function; `check` compares it with ONNX Runtime's Mul)."""
-    readers = {}
-    for n in g.node:
-        for i in n.input:
-            readers.setdefault(i, []).append(n)
-    outputs = {o.name for o in g.output}
+    x and of the Sigmoid's output: each runs as torch's SiLU, one pass forward and one
+    backward instead of three (the same function; `check` compares it with ONNX Runtime's
+    Mul)."""
+    readers, outputs = readers_of(g), {o.name for o in g.output}
     pairs = {}
     for n in g.node:
         if n.op_type != "Sigmoid" or n.output[0] in outputs:
