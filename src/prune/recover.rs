@@ -30,6 +30,9 @@ pub struct Options {
     /// The initializers that train (any float initializer, whatever reads it); None: every
     /// Conv weight and bias.
     pub trainable: Option<Vec<String>>,
+    /// `distill`'s weight of the YOLOv8 box edges' own error beside the DFL distributions'
+    /// KL (0: the KL alone). Quantization-aware training weighs its heads itself.
+    pub box_edges: f64,
 }
 
 /// What one distillation did, from the worker's own account.
@@ -127,6 +130,7 @@ fn feature_specs(model: &ModelProto, kept: &HashMap<String, Vec<usize>>) -> Resu
 /// `held_out`; writes them into `student`.
 pub fn distill(student: &mut ModelProto, teacher: &ModelProto, kept: &HashMap<String, Vec<usize>>, frames: &[Tensor], held_out: &[Tensor], o: &Options) -> Result<Outcome> {
     let mut heads = head_specs(student)?;
+    crate::quant::qat::weigh_edges(&mut heads, o.box_edges);
     // Rows a scene dropped from a head convolution: the teacher's kept rows.
     for h in &mut heads {
         if let Some(k) = h["value"].as_str().and_then(|v| kept.get(v)) {

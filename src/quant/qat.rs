@@ -20,7 +20,7 @@ use std::collections::BTreeMap;
 /// Weight of the YOLOv8 box edges' own error (each side's expected distance, in bins) beside
 /// the DFL distributions' KL: INT8 moves the edges by fractions of a bin, which the KL barely
 /// sees and IoU at 0.95 does.
-const EDGE_WEIGHT: f64 = 1.0;
+pub const EDGE_WEIGHT: f64 = 1.0;
 
 pub struct Trained {
     /// The QDQ model with its trained integers.
@@ -55,10 +55,10 @@ impl Student {
     }
 }
 
-/// Adds the YOLOv8 box edges' own term to its box heads.
-pub fn weigh_edges(heads: &mut [serde_json::Value]) {
+/// Adds the YOLOv8 box edges' own term, at `weight`, to its box heads.
+pub fn weigh_edges(heads: &mut [serde_json::Value], weight: f64) {
     for h in heads.iter_mut().filter(|h| h["kind"] == "v8box") {
-        h["edge_weight"] = serde_json::json!(EDGE_WEIGHT);
+        h["edge_weight"] = serde_json::json!(weight);
     }
 }
 
@@ -114,4 +114,17 @@ fn rel_l2(reference: &[(String, Vec<f32>)], candidate: &[(String, Vec<f32>)]) ->
             (name.clone(), s.finish().rel_l2)
         })
         .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::weigh_edges;
+
+    #[test]
+    fn only_yolov8_box_heads_get_the_edge_term() {
+        let mut heads = vec![serde_json::json!({"kind": "v8box"}), serde_json::json!({"kind": "v8cls"}), serde_json::json!({"kind": "v5"})];
+        weigh_edges(&mut heads, 4.0);
+        assert_eq!(heads[0]["edge_weight"], 4.0);
+        assert!(heads[1].get("edge_weight").is_none() && heads[2].get("edge_weight").is_none());
+    }
 }
