@@ -84,3 +84,19 @@ fn recover_needs_a_prune_pass() {
     assert!(r.stderr.contains("put a prune pass before it"), "{}", r.stderr);
     assert!(!dir.path().join("o/model.onnx").exists(), "nothing written");
 }
+
+/// Impossible recovery settings are refused in one line before any training, and nothing is
+/// written.
+#[test]
+fn impossible_recover_settings_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    for setting in ["box_edges: -1", "box_edges: .inf", "lr: .nan", "batch: 0"] {
+        let recipe = dir.path().join("r.yaml");
+        std::fs::write(&recipe, format!("name: r\npasses: [{LOSSLESS}, {{prune: {{ratio: 0.5, compensate: none}}}}, {{recover: {{{setting}}}}}, cleanup]\n")).unwrap();
+        let out = dir.path().join("o");
+        let r = cli(&["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap()]);
+        assert_eq!(r.code, 2, "{setting}: {}", r.stderr);
+        assert!(r.stderr.contains("recover needs frames >= batch > 0") && r.stderr.trim().lines().count() == 1, "{setting}: {}", r.stderr);
+        assert!(!out.join("model.onnx").exists(), "{setting}: nothing written");
+    }
+}

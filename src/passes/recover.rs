@@ -77,8 +77,8 @@ impl Pass for Recover {
 
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
-        if o.frames < o.batch || o.batch == 0 || !(o.lr > 0.0) || !(o.minutes > 0.0) {
-            bail!("recover needs frames >= batch > 0, lr > 0 and minutes > 0");
+        if o.frames < o.batch || o.batch == 0 || !(o.lr > 0.0) || !(o.minutes > 0.0) || !(o.box_edges >= 0.0 && o.box_edges.is_finite()) {
+            bail!("recover needs frames >= batch > 0, lr > 0, minutes > 0 and a finite box_edges >= 0");
         }
         let Teacher { model: teacher, kept, window, estimates } = cx.teacher.borrow().clone().ok_or_else(|| anyhow!("recover distills a pruned or scene-specialized model from the model before: put a prune pass before it in the recipe (or specialize with --scene)"))?;
         // Frames are the teacher's: with a scene ROI the student sees their crop.
