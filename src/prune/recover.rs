@@ -30,8 +30,8 @@ pub struct Options {
     /// The initializers that train (any float initializer, whatever reads it); None: every
     /// Conv weight and bias.
     pub trainable: Option<Vec<String>>,
-    /// `distill`'s weight of the YOLOv8 box edges' own error beside the DFL distributions'
-    /// KL (0: the KL alone). Quantization-aware training weighs its heads itself.
+    /// Weight of the YOLOv8 box edges' own error beside the DFL distributions' KL (0: the KL
+    /// alone); `train` puts it on every box head it is given.
     pub box_edges: f64,
 }
 
@@ -130,7 +130,6 @@ fn feature_specs(model: &ModelProto, kept: &HashMap<String, Vec<usize>>) -> Resu
 /// `held_out`; writes them into `student`.
 pub fn distill(student: &mut ModelProto, teacher: &ModelProto, kept: &HashMap<String, Vec<usize>>, frames: &[Tensor], held_out: &[Tensor], o: &Options) -> Result<Outcome> {
     let mut heads = head_specs(student)?;
-    crate::quant::qat::weigh_edges(&mut heads, o.box_edges);
     // Rows a scene dropped from a head convolution: the teacher's kept rows.
     for h in &mut heads {
         if let Some(k) = h["value"].as_str().and_then(|v| kept.get(v)) {
@@ -156,10 +155,18 @@ pub(crate) struct Job {
     pub label: &'static str,
 }
 
+/// Adds the YOLOv8 box edges' own term, at `weight`, to its box heads.
+fn weigh_edges(heads: &mut [serde_json::Value], weight: f64) {
+    for h in heads.iter_mut().filter(|h| h["kind"] == "v8box") {
+        h["edge_weight"] = serde_json::json!(weight);
+    }
+}
+
 /// Runs the worker on `student` and `teacher`; writes the trained values into `student` and
 /// returns the worker's account and, when asked, its outputs on `held_out` (one tensor per
 /// graph output, frames stacked).
-pub(crate) fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Tensor], held_out: &[Tensor], o: &Options, job: Job) -> Result<(Outcome, Vec<Tensor>)> {
+pub(crate) fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Tensor], held_out: &[Tensor], o: &Options, mut job: Job) -> Result<(Outcome, Vec<Tensor>)> {
+    weigh_edges(&mut job.heads, o.box_edges);
     let work = tempfile::tempdir()?;
     let dir = work.path();
     crate::onnx::save(student, &dir.join("student.onnx"))?;
@@ -263,4 +270,17 @@ pub(crate) fn write_frames(frames: &[Tensor], path: &Path) -> Result<()> {
     }
     std::fs::write(path, crate::optics::npy::to_bytes(&shape, &data))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::weigh_edges;
+
+    #[test]
+    fn only_yolov8_box_heads_get_the_edge_term() {
+        let mut heads = vec![serde_json::json!({"kind": "v8box"}), serde_json::json!({"kind": "v8cls"}), serde_json::json!({"kind": "v5"})];
+        weigh_edges(&mut heads, 4.0);
+        assert_eq!(heads[0]["edge_weight"], 4.0);
+        assert!(heads[1].get("edge_weight").is_none() && heads[2].get("edge_weight").is_none());
+    }
 }

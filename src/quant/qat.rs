@@ -55,13 +55,6 @@ impl Student {
     }
 }
 
-/// Adds the YOLOv8 box edges' own term, at `weight`, to its box heads.
-pub fn weigh_edges(heads: &mut [serde_json::Value], weight: f64) {
-    for h in heads.iter_mut().filter(|h| h["kind"] == "v8box") {
-        h["edge_weight"] = serde_json::json!(weight);
-    }
-}
-
 /// Trains the integers of `quantized` (emitted from `float`) to reproduce `float`'s head
 /// logits on `frames`; `held_out` (feeds of one image input) judge it, run on ONNX Runtime
 /// with `threads`.
@@ -114,17 +107,4 @@ fn rel_l2(reference: &[(String, Vec<f32>)], candidate: &[(String, Vec<f32>)]) ->
             (name.clone(), s.finish().rel_l2)
         })
         .collect())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::weigh_edges;
-
-    #[test]
-    fn only_yolov8_box_heads_get_the_edge_term() {
-        let mut heads = vec![serde_json::json!({"kind": "v8box"}), serde_json::json!({"kind": "v8cls"}), serde_json::json!({"kind": "v5"})];
-        weigh_edges(&mut heads, 4.0);
-        assert_eq!(heads[0]["edge_weight"], 4.0);
-        assert!(heads[1].get("edge_weight").is_none() && heads[2].get("edge_weight").is_none());
-    }
 }
