@@ -90,7 +90,7 @@ fn recover_needs_a_prune_pass() {
 #[test]
 fn impossible_recover_settings_are_refused() {
     let dir = tempfile::tempdir().unwrap();
-    for setting in ["box_edges: -1", "box_edges: .inf", "lr: .nan", "batch: 0"] {
+    for setting in ["box_edges: -1", "box_edges: .inf", "class_foreground: -2", "class_foreground: .nan", "lr: .nan", "batch: 0"] {
         let recipe = dir.path().join("r.yaml");
         std::fs::write(&recipe, format!("name: r\npasses: [{LOSSLESS}, {{prune: {{ratio: 0.5, compensate: none}}}}, {{recover: {{{setting}}}}}, cleanup]\n")).unwrap();
         let out = dir.path().join("o");

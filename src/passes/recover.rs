@@ -48,6 +48,11 @@ pub struct Options {
     /// 0.728 at 0 / 1 / 4 / 16, then levelled off (0.731 at 64; 19 minutes each, 2 CPU
     /// cores). YOLOv5 heads do not read it.
     pub box_edges: f64,
+    /// Weight of the YOLOv8 class scores' KL on the cells where the teacher sees an object
+    /// (weighted by its best class score), beside the KL's plain mean over every cell: the
+    /// background's cells outnumber the objects' about a hundredfold and decide that mean,
+    /// while mAP ranks the objects' scores. 0: the mean alone. YOLOv5 heads do not read it.
+    pub class_foreground: f64,
 }
 
 #[derive(serde::Deserialize, serde::Serialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -60,7 +65,7 @@ pub enum Train {
 
 impl Default for Options {
     fn default() -> Self {
-        Options { minutes: 15.0, epochs: 30, lr: 1e-3, frames: 512, batch: 16, seed: 0, device: String::new(), train: Train::All, box_edges: 16.0 }
+        Options { minutes: 15.0, epochs: 30, lr: 1e-3, frames: 512, batch: 16, seed: 0, device: String::new(), train: Train::All, box_edges: 16.0, class_foreground: 4.0 }
     }
 }
 
@@ -78,8 +83,8 @@ impl Pass for Recover {
 
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
-        if o.frames < o.batch || o.batch == 0 || !(o.lr > 0.0) || !(o.minutes > 0.0) || !(o.box_edges >= 0.0 && o.box_edges.is_finite()) {
-            bail!("recover needs frames >= batch > 0, lr > 0, minutes > 0 and a finite box_edges >= 0");
+        if o.frames < o.batch || o.batch == 0 || !(o.lr > 0.0) || !(o.minutes > 0.0) || ![o.box_edges, o.class_foreground].iter().all(|w| *w >= 0.0 && w.is_finite()) {
+            bail!("recover needs frames >= batch > 0, lr > 0, minutes > 0, and finite box_edges and class_foreground >= 0");
         }
         let Teacher { model: teacher, kept, window, estimates } = cx.teacher.borrow().clone().ok_or_else(|| anyhow!("recover distills a pruned or scene-specialized model from the model before: put a prune pass before it in the recipe (or specialize with --scene)"))?;
         // Frames are the teacher's: with a scene ROI the student sees their crop.
@@ -102,7 +107,7 @@ impl Pass for Recover {
             Train::All => None,
             Train::Estimates => Some(present(model, &estimates)?),
         };
-        let opts = Distill { minutes: o.minutes, epochs: o.epochs, lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone(), window, trainable, box_edges: o.box_edges };
+        let opts = Distill { minutes: o.minutes, epochs: o.epochs, lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone(), window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground };
         let outcome = distill(&mut trained, &teacher, &kept, &train.iter().map(image).collect::<Vec<_>>(), &check.iter().map(image).collect::<Vec<_>>(), &opts)?;
         let after = errors(&trained)?;
         let kept = worst_rel_l2(&after) < worst_rel_l2(&before);
@@ -113,6 +118,7 @@ impl Pass for Recover {
             "kept": kept,
             "train": o.train,
             "box_edges": o.box_edges,
+            "class_foreground": o.class_foreground,
             "frames": train.len(),
             "held_out_frames": check.len(),
             "calibration": source,

@@ -33,6 +33,9 @@ pub struct Options {
     /// Weight of the YOLOv8 box edges' own error beside the DFL distributions' KL (0: the KL
     /// alone); `train` puts it on every box head it is given.
     pub box_edges: f64,
+    /// Weight of the YOLOv8 class scores' KL where the teacher sees an object, beside the
+    /// plain mean over every cell (0: the mean alone); `train` puts it on every class head.
+    pub class_foreground: f64,
 }
 
 /// What one distillation did, from the worker's own account.
@@ -116,14 +119,40 @@ pub fn split_head_specs(model: &ModelProto, student_value: &std::collections::BT
     Ok(specs)
 }
 
-/// The head convolutions' inputs, matched channel by channel: a pruned value's kept
-/// positions index the teacher's channels (a dense signal where the logits are sparse).
+/// The head convolutions' inputs and the neck outputs their branches start from, matched
+/// channel by channel: a pruned value's kept positions index the teacher's channels (a dense
+/// signal where the logits are sparse).
 fn feature_specs(model: &ModelProto, kept: &HashMap<String, Vec<usize>>) -> Result<Vec<serde_json::Value>> {
     let graph = Graph::build(model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?)?;
-    let mut values: Vec<String> = detector_convolutions(&graph).into_iter().map(|i| graph.node(i).input[0].clone()).collect();
+    let inputs: Vec<String> = detector_convolutions(&graph).into_iter().map(|i| graph.node(i).input[0].clone()).collect();
+    let mut values: Vec<String> = inputs.iter().filter_map(|v| branch_root(&graph, v)).chain(inputs.iter().cloned()).collect();
     values.sort();
     values.dedup();
     Ok(values.into_iter().map(|v| serde_json::json!({ "value": v, "keep": kept.get(&v) })).collect())
+}
+
+/// Where the head branch ending in value `v` starts: up through the branch's own
+/// convolutions (each value read by one convolution, SiLU pairs looked through) to the first
+/// value several convolutions read, the neck output a YOLOv8 head's box and class branches
+/// share. None when `v` is that already (a YOLOv5 head reads the neck directly).
+fn branch_root(g: &Graph, v: &str) -> Option<String> {
+    let conv_readers = |v: &str| g.consumers_of(v).iter().filter(|&&c| g.node(c).op_type == "Conv").count();
+    let mut v = v.to_string();
+    // Heads are a few convolutions deep: a longer walk has left the head.
+    for _ in 0..4 {
+        if conv_readers(&v) != 1 {
+            return None;
+        }
+        let p = g.producer_of(&v)?;
+        let x = if p.op_type == "Mul" { p.input[0].as_str() } else { v.as_str() };
+        let conv = g.producer_of(x).filter(|n| n.op_type == "Conv")?;
+        let u = conv.input[0].clone();
+        if conv_readers(&u) > 1 {
+            return Some(u);
+        }
+        v = u;
+    }
+    None
 }
 
 /// Trains `student`'s weights towards `teacher` on `frames` (each [1, 1, H, W]), measuring on
@@ -155,10 +184,15 @@ pub(crate) struct Job {
     pub label: &'static str,
 }
 
-/// Adds the YOLOv8 box edges' own term, at `weight`, to its box heads.
-fn weigh_edges(heads: &mut [serde_json::Value], weight: f64) {
-    for h in heads.iter_mut().filter(|h| h["kind"] == "v8box") {
-        h["edge_weight"] = serde_json::json!(weight);
+/// Adds the YOLOv8 box edges' own term, at `edges`, to its box heads, and the class scores'
+/// foreground term, at `foreground`, to its class heads.
+fn weigh_terms(heads: &mut [serde_json::Value], edges: f64, foreground: f64) {
+    for h in heads.iter_mut() {
+        match h["kind"].as_str() {
+            Some("v8box") => h["edge_weight"] = serde_json::json!(edges),
+            Some("v8cls") => h["foreground"] = serde_json::json!(foreground),
+            _ => {}
+        }
     }
 }
 
@@ -166,7 +200,7 @@ fn weigh_edges(heads: &mut [serde_json::Value], weight: f64) {
 /// returns the worker's account and, when asked, its outputs on `held_out` (one tensor per
 /// graph output, frames stacked).
 pub(crate) fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Tensor], held_out: &[Tensor], o: &Options, mut job: Job) -> Result<(Outcome, Vec<Tensor>)> {
-    weigh_edges(&mut job.heads, o.box_edges);
+    weigh_terms(&mut job.heads, o.box_edges, o.class_foreground);
     let work = tempfile::tempdir()?;
     let dir = work.path();
     crate::onnx::save(student, &dir.join("student.onnx"))?;
@@ -274,13 +308,30 @@ pub(crate) fn write_frames(frames: &[Tensor], path: &Path) -> Result<()> {
 
 #[cfg(test)]
 mod tests {
-    use super::weigh_edges;
+    use super::{feature_specs, weigh_terms};
+
+    /// The v8's box and class branches start from the neck's three outputs, which are matched
+    /// as features beside the branches' last inputs; the v5's head reads the neck directly.
+    #[test]
+    fn features_reach_back_to_where_yolov8_branches_start() {
+        let features = |m: &str| -> Vec<String> {
+            let model = crate::onnx::load(std::path::Path::new(m)).unwrap().model;
+            feature_specs(&model, &Default::default()).unwrap().iter().map(|f| f["value"].as_str().unwrap().to_string()).collect()
+        };
+        let v8 = features("models/trained/pdinet_v8_w0.25_trained.onnx");
+        let necks: Vec<&String> = v8.iter().filter(|v| v.starts_with("/neck/")).collect();
+        assert_eq!((v8.len(), necks.len()), (9, 3), "{v8:?}");
+        let v5 = features("models/trained/pdinet_v5_w0.25_trained.onnx");
+        assert_eq!(v5.len(), 3, "{v5:?}");
+    }
 
     #[test]
-    fn only_yolov8_box_heads_get_the_edge_term() {
+    fn each_yolov8_head_gets_its_own_term() {
         let mut heads = vec![serde_json::json!({"kind": "v8box"}), serde_json::json!({"kind": "v8cls"}), serde_json::json!({"kind": "v5"})];
-        weigh_edges(&mut heads, 4.0);
+        weigh_terms(&mut heads, 4.0, 2.0);
         assert_eq!(heads[0]["edge_weight"], 4.0);
-        assert!(heads[1].get("edge_weight").is_none() && heads[2].get("edge_weight").is_none());
+        assert_eq!(heads[1]["foreground"], 2.0);
+        assert!(heads[0].get("foreground").is_none() && heads[1].get("edge_weight").is_none());
+        assert!(heads[2].get("edge_weight").is_none() && heads[2].get("foreground").is_none());
     }
 }

@@ -475,7 +475,15 @@ def head_loss(s, t, spec):
         box = (obj * (torch.sigmoid(s[:, :, :4]) - torch.sigmoid(t[:, :, :4])) ** 2).sum() / obj.sum().clamp(min=1) / 4
         return box * 20.0 + soft_bce(s[:, :, 4:], t[:, :, 4:])
     if kind in ("v8cls", "v5scores"):
-        return soft_bce(s, t)
+        loss = soft_bce(s, t)
+        if spec.get("foreground"):
+            # The same KL where the teacher sees an object (weighted by its best class score):
+            # background cells outnumber objects a hundredfold and decide the plain mean, while
+            # mAP ranks the objects' scores.
+            w = torch.sigmoid(t).amax(1, keepdim=True)
+            per = soft_bce_map(s, t).mean(1, keepdim=True)
+            loss = loss + spec["foreground"] * 10.0 * (per * w).sum() / w.sum().clamp(min=1)
+        return loss
     if kind == "v5box":
         # A split YOLOv5 head's box rows: matched where the teacher sees an object.
         na = spec["anchors"]
@@ -504,8 +512,13 @@ def head_loss(s, t, spec):
 
 def soft_bce(s, t):
     """BCE against the teacher's probabilities minus its entropy: a KL, zero when they agree."""
+    return soft_bce_map(s, t).mean() * 10.0
+
+
+def soft_bce_map(s, t):
+    """`soft_bce` per element."""
     p = torch.sigmoid(t)
-    return (F.binary_cross_entropy_with_logits(s, p, reduction="none") - F.binary_cross_entropy_with_logits(t, p, reduction="none")).mean() * 10.0
+    return F.binary_cross_entropy_with_logits(s, p, reduction="none") - F.binary_cross_entropy_with_logits(t, p, reduction="none")
 
 
 def feature_loss(s, t, keep):
