@@ -50,6 +50,21 @@ fn the_interpreter_matches_onnx_runtime_op_by_op() {
     }
 }
 
+/// The features distilled beside the logits: on the compiled v8 the head's last inputs and the
+/// three neck outputs its box and class branches start from; on the v5, whose head reads the
+/// neck outputs directly, those three alone.
+#[test]
+fn features_reach_back_to_where_yolov8_branches_start() {
+    let dir = tempfile::tempdir().unwrap();
+    for (model, total) in [("models/trained/pdinet_v8_w0.25_trained.onnx", 9), ("models/trained/pdinet_v5_w0.25_trained.onnx", 3)] {
+        let out = dir.path().join(model.replace('/', "_"));
+        compile(model, "passes/detect-f32.yaml", &out);
+        let features: Vec<String> = pdi_compile::prune::recover::feature_specs(&load(&out.join("model.onnx")), &Default::default()).unwrap().iter().map(|f| f["value"].as_str().unwrap().to_string()).collect();
+        let necks = features.iter().filter(|v| v.starts_with("/neck/")).count();
+        assert_eq!((features.len(), necks), (total, 3), "{model}: {features:?}");
+    }
+}
+
 /// A short recovery of the pruned tiny model: held-out agreement with the unpruned model gets
 /// better, the node list stays exactly what `prune` left.
 #[test]
