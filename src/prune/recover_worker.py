@@ -475,14 +475,14 @@ def head_loss(s, t, spec):
         box = (obj * (torch.sigmoid(s[:, :, :4]) - torch.sigmoid(t[:, :, :4])) ** 2).sum() / obj.sum().clamp(min=1) / 4
         return box * 20.0 + soft_bce(s[:, :, 4:], t[:, :, 4:])
     if kind in ("v8cls", "v5scores"):
-        loss = soft_bce(s, t)
+        kl = soft_bce_map(s, t)
+        loss = kl.mean() * 10.0
         if spec.get("foreground"):
             # The same KL where the teacher sees an object (weighted by its best class score):
             # background cells outnumber objects a hundredfold and decide the plain mean, while
             # mAP ranks the objects' scores.
             w = torch.sigmoid(t).amax(1, keepdim=True)
-            per = soft_bce_map(s, t).mean(1, keepdim=True)
-            loss = loss + spec["foreground"] * 10.0 * (per * w).sum() / w.sum().clamp(min=1)
+            loss = loss + spec["foreground"] * 10.0 * (kl.mean(1, keepdim=True) * w).sum() / w.sum().clamp(min=1)
         return loss
     if kind == "v5box":
         # A split YOLOv5 head's box rows: matched where the teacher sees an object.
