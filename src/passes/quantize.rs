@@ -335,7 +335,7 @@ fn quantization_aware(float: &ModelProto, quantized: ModelProto, feeds: &[Vec<(S
     if frames.len() < q.batch {
         bail!("qat has {} calibration frames for batches of {}; raise calib_frames or lower qat's batch", frames.len(), q.batch);
     }
-    let schedule = crate::prune::recover::Options { minutes: q.minutes, epochs: q.epochs, lr: q.lr, batch: q.batch, seed: o.seed, device: q.device.clone(), window: None, trainable: None, box_edges: crate::quant::qat::EDGE_WEIGHT, class_foreground: 0.0 };
+    let schedule = crate::quant::qat::schedule(q.minutes, q.epochs, q.lr, q.batch, o.seed, q.device.clone());
     let heads = crate::prune::recover::head_specs(float)?;
     let student = crate::quant::qat::Student::symmetric(heads, o.weight_bits);
     let t = crate::quant::qat::train(&quantized, float, student, &frames, held_out, &schedule, threads)?;

@@ -140,7 +140,7 @@ impl Pass for RknnQat {
         let (quantized, dequantized) = at_points::emit(model, &params)?;
 
         let heads = crate::prune::recover::split_head_specs(model, &dequantized)?;
-        let schedule = crate::prune::recover::Options { minutes: o.minutes, epochs: o.epochs, lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone(), window: None, trainable: None, box_edges: qat::EDGE_WEIGHT, class_foreground: 0.0 };
+        let schedule = qat::schedule(o.minutes, o.epochs, o.lr, o.batch, o.seed, o.device.clone());
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         let student = Student { heads, weight_range: at_points::WEIGHT_RANGE, pin_extremes: true };
         let t = qat::train(&quantized, model, student, &frames, &held, &schedule, threads)?;
