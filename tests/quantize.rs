@@ -318,21 +318,23 @@ fn learned_rounding_moves_weights_one_step_and_lowers_layer_error() {
     scales_are_finite(&b.join("model.onnx"));
 }
 
-/// Quantization-aware recovery on the trained tiny model: a few steps bring the held-out
-/// outputs closer to float, the written model reproduces the worker's fake-quantized forward
-/// on ONNX Runtime within float noise, and only integer values changed (the nodes, the scales
-/// and every other initializer are those of the same compile without it).
+/// Quantization-aware recovery on the trained tiny model, on the calibration frames and more
+/// (`frames`): a few steps bring the held-out outputs closer to float, the written model
+/// reproduces the worker's fake-quantized forward on ONNX Runtime within float noise, and only
+/// integer values changed (the nodes, the scales and every other initializer are those of the
+/// same compile without it).
 #[test]
 fn quantization_aware_recovery_trains_the_emitted_integers() {
     let dir = tempfile::tempdir().unwrap();
     let fast = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 32");
     let plain = variant(dir.path(), &fast, "error_budget: 0.1", "error_budget: 10.0");
-    let qat = variant(dir.path(), &plain, "error_budget: 10.0", "error_budget: 10.0, qat: {minutes: 2, epochs: 4, lr: 2.0e-3, batch: 8}");
+    let qat = variant(dir.path(), &plain, "error_budget: 10.0", "error_budget: 10.0, qat: {minutes: 2, epochs: 4, lr: 2.0e-3, batch: 8, frames: 48}");
     let (a, b) = (dir.path().join("plain"), dir.path().join("qat"));
     compile(TINY, &plain, &a, &[]);
     let r = compile(TINY, &qat, &b, &[])["qat"].clone();
     println!("{}", serde_json::to_string_pretty(&r).unwrap());
     assert!(r["training"]["steps"].as_u64().unwrap() >= 4, "{r}");
+    assert_eq!(r["frames"], 48, "32 calibration frames and 16 drawn after the held-out ones");
     let worst = |m: &serde_json::Value| m.as_object().unwrap().iter().filter(|(k, _)| k.contains('/')).map(|(_, v)| v.as_f64().unwrap()).fold(0.0, f64::max);
     let (before, after) = (worst(&r["output_rel_l2"]["before"]), worst(&r["output_rel_l2"]["after"]));
     assert!(after < before, "QAT brings the worst output group closer to float: {before} -> {after}");

@@ -91,13 +91,17 @@ pub struct Qat {
     /// one or two steps and no further.
     pub lr: f64,
     pub batch: usize,
+    /// Training frames: the calibration frames, and more drawn after the held-out ones up to
+    /// this count (0 or fewer than the calibration frames: those alone). A hundred epochs
+    /// over 64 frames learn those frames; more frames carry the fit to the held-out ones.
+    pub frames: usize,
     /// `cuda` or `cpu`; empty: CUDA when torch sees it.
     pub device: String,
 }
 
 impl Default for Qat {
     fn default() -> Self {
-        Qat { minutes: 5.0, epochs: 100, lr: 1e-4, batch: 8, device: String::new() }
+        Qat { minutes: 5.0, epochs: 100, lr: 1e-4, batch: 8, frames: 0, device: String::new() }
     }
 }
 
@@ -260,7 +264,18 @@ impl Pass for Quantize {
         let (quantized, qat, kept_errors) = match &o.qat {
             None => (quantized, None, None),
             Some(q) => {
-                let (model, report, errors) = quantization_aware(&float, quantized, &feeds, &held_out, o, q, threads)?;
+                // Frames beyond the calibration set come after the held-out ones (the same
+                // draw, longer), so training never sees a frame that judges it.
+                let wanted = crate::calib_frames::affordable_frames("qat", &graph, &inf, q.frames);
+                let extended;
+                let train: &[Vec<(String, crate::tensor::Tensor)>] = if wanted > calib && !overlap {
+                    let (more, _) = image_feeds(&graph, &inf, cx.calib.as_deref(), wanted + held_out.len(), o.seed)?;
+                    extended = feeds.iter().cloned().chain(more.into_iter().skip(calib + held_out.len())).collect::<Vec<_>>();
+                    &extended
+                } else {
+                    &feeds
+                };
+                let (model, report, errors) = quantization_aware(&float, quantized, train, &held_out, o, q, threads)?;
                 (model, Some(report), Some(errors))
             }
         };

@@ -14,7 +14,7 @@
 //! Reports: the loss per epoch, device, steps, frames/s and seconds, the box edges' weight,
 //! and the rel L2 per output group against the teacher on held-out frames before and after.
 
-use crate::calib_frames::image_feeds;
+use crate::calib_frames::{affordable_frames, image_feeds};
 use crate::ir::{infer, Graph};
 use crate::onnx::proto::ModelProto;
 use super::prune::by_name;
@@ -32,7 +32,8 @@ pub struct Options {
     /// Passes over the frames, when the budget allows.
     pub epochs: usize,
     pub lr: f64,
-    /// Training frames (unlabelled); 16 more are held out to judge the result.
+    /// Training frames (unlabelled), at most what fits in 1 GiB of pixels; 16 more are held
+    /// out to judge the result.
     pub frames: usize,
     pub batch: usize,
     pub seed: u64,
@@ -91,7 +92,8 @@ impl Pass for Recover {
         let g = teacher.graph.as_ref().ok_or_else(|| anyhow!("teacher has no graph"))?;
         let graph = Graph::build(g)?;
         let inf = infer(&graph);
-        let (feeds, source) = image_feeds(&graph, &inf, cx.calib.as_deref(), o.frames + HELD_OUT, o.seed.wrapping_add(17))?;
+        let frames = affordable_frames("recover", &graph, &inf, o.frames);
+        let (feeds, source) = image_feeds(&graph, &inf, cx.calib.as_deref(), frames + HELD_OUT, o.seed.wrapping_add(17))?;
         if feeds.len() < o.batch + 2 {
             bail!("recover got {} frames from {source}; it needs at least {}", feeds.len(), o.batch + 2);
         }
