@@ -268,14 +268,8 @@ impl Pass for Quantize {
                 // Frames beyond the calibration set come after the held-out ones (the same
                 // draw, longer), so training never sees a frame that judges it.
                 let wanted = crate::calib_frames::affordable_frames("qat", &graph, &inf, q.frames);
-                let extended;
-                let train: &[Vec<(String, crate::tensor::Tensor)>] = if wanted > calib && !overlap {
-                    let (more, _) = image_feeds(&graph, &inf, cx.calib.as_deref(), wanted + held_out.len(), o.seed)?;
-                    extended = feeds.iter().cloned().chain(more.into_iter().skip(calib + held_out.len())).collect::<Vec<_>>();
-                    &extended
-                } else {
-                    &feeds
-                };
+                let more = if wanted > calib && !overlap { image_feeds(&graph, &inf, cx.calib.as_deref(), wanted + held_out.len(), o.seed)?.0 } else { Vec::new() };
+                let train = feeds.iter().chain(more.iter().skip(calib + held_out.len())).map(|f| f[0].1.clone()).collect();
                 let (model, report, errors) = quantization_aware(&float, quantized, train, &held_out, o, q, threads)?;
                 (model, Some(report), Some(errors))
             }
@@ -343,11 +337,11 @@ impl Pass for Quantize {
     }
 }
 
-/// Quantization-aware recovery of `quantized` towards `float` on the calibration frames; the
-/// trained model is kept only if its worst output group on the held-out frames got closer.
+/// Quantization-aware recovery of `quantized` towards `float` on `frames` (the calibration
+/// frames and any more); the trained model is kept only if its worst output group on the
+/// held-out frames got closer.
 /// Returns the model kept, the report, and the kept model's held-out output errors.
-fn quantization_aware(float: &ModelProto, quantized: ModelProto, feeds: &[Vec<(String, crate::tensor::Tensor)>], held_out: &[Vec<(String, crate::tensor::Tensor)>], o: &Options, q: &Qat, threads: usize) -> Result<(ModelProto, serde_json::Value, Vec<attribution::OutputError>)> {
-    let frames: Vec<crate::tensor::Tensor> = feeds.iter().map(|f| f[0].1.clone()).collect();
+fn quantization_aware(float: &ModelProto, quantized: ModelProto, frames: Vec<crate::tensor::Tensor>, held_out: &[Vec<(String, crate::tensor::Tensor)>], o: &Options, q: &Qat, threads: usize) -> Result<(ModelProto, serde_json::Value, Vec<attribution::OutputError>)> {
     if frames.len() < q.batch {
         bail!("qat has {} calibration frames for batches of {}; raise calib_frames or lower qat's batch", frames.len(), q.batch);
     }
