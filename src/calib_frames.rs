@@ -48,6 +48,12 @@ fn check_frame(f: &Frame) -> Result<()> {
 
 /// Up to `n` frames of `height x width` from `folder` (sorted by name), or `n` simulated ones.
 pub fn calibration_frames(folder: Option<&Path>, n: usize, height: usize, width: usize, seed: u64) -> Result<CalibrationSet> {
+    calibration_frames_from(folder, 0, n, height, width, seed)
+}
+
+/// Frames `first..first + n` of the set `calibration_frames` draws (the same frames, without
+/// making the first ones): a pass that wants more frames later continues its draw.
+pub fn calibration_frames_from(folder: Option<&Path>, first: usize, n: usize, height: usize, width: usize, seed: u64) -> Result<CalibrationSet> {
     if n == 0 {
         bail!("a calibration set needs at least one frame");
     }
@@ -56,12 +62,15 @@ pub fn calibration_frames(folder: Option<&Path>, n: usize, height: usize, width:
         if frames.is_empty() {
             bail!("no frames in {} (PNG/TIFF 8/16-bit grayscale or .npy); point --calib at camera frames", dir.display());
         }
+        let held = frames.len();
+        frames.drain(..first.min(held));
         frames.truncate(n);
         for f in &frames {
             check_frame(f).map_err(|e| anyhow!("{}: {e}", dir.join(&f.name).display()))?;
         }
         if frames.len() < n {
-            crate::warn::warn(format!("{} holds {} frame(s); the pass asked for {n}: its statistics rest on fewer frames", dir.display(), frames.len()));
+            let asked = if first == 0 { format!("{n}") } else { format!("frames {} to {}", first + 1, first + n) };
+            crate::warn::warn(format!("{} holds {held} frame(s); the pass asked for {asked}: its statistics rest on fewer frames", dir.display()));
         }
         let source = format!("{} frames from {}", frames.len(), dir.display());
         return Ok(CalibrationSet { frames, source });
@@ -74,7 +83,7 @@ pub fn calibration_frames(folder: Option<&Path>, n: usize, height: usize, width:
     let blur = SpatialBlur::new(&kernels, PSF_KERNEL, PSF_GRID.0, PSF_GRID.1, sh, sw);
     let pb = ProgressBar::new(n as u64);
     pb.set_style(ProgressStyle::with_template("calibration frames [{bar:30}] {pos}/{len}").expect("valid template").progress_chars("=> "));
-    let frames = (0..n)
+    let frames = (first..first + n)
         .into_par_iter()
         .map(|i| {
             let s = crate::optics::synth::scene(sw, sh, seed.wrapping_mul(7919).wrapping_add(i as u64));
@@ -92,13 +101,18 @@ pub fn calibration_frames(folder: Option<&Path>, n: usize, height: usize, width:
 /// Calibration feeds for a model: `n` frames fed to its single-channel image input (every
 /// other input must already be bound, as `bind-psf` binds the blur map), and their source.
 pub fn image_feeds(graph: &Graph, inf: &Inferred, folder: Option<&Path>, n: usize, seed: u64) -> Result<(Vec<Vec<(String, Tensor)>>, String)> {
+    image_feeds_from(graph, inf, folder, 0, n, seed)
+}
+
+/// Feeds of frames `first..first + n` of `image_feeds`'s draw.
+pub fn image_feeds_from(graph: &Graph, inf: &Inferred, folder: Option<&Path>, first: usize, n: usize, seed: u64) -> Result<(Vec<Vec<(String, Tensor)>>, String)> {
     let image = image_input(graph, inf).ok_or_else(|| anyhow!("calibration needs a [1, C, H, W] image input"))?;
     if let Some(other) = graph.inputs.iter().find(|v| v.name != image) {
         bail!("input '{}' has no calibration value; run bind-psf (with --psf) first", other.name);
     }
     let s = inf.shape(&image).ok_or_else(|| anyhow!("image input '{image}' has no static shape"))?;
     let channels = usize::try_from(s[1]).ok().filter(|&c| (1..=16).contains(&c)).ok_or_else(|| anyhow!("image input '{image}' has {} channels; expected 1 to 16", s[1]))?;
-    let set = calibration_frames(folder, n, s[2], s[3], seed)?;
+    let set = calibration_frames_from(folder, first, n, s[2], s[3], seed)?;
     if channels > 1 {
         crate::warn::warn(format!("image input '{image}' takes {channels} channels; each single-channel calibration frame is replicated into all of them (thermal frames stored as RGB)"));
     }
@@ -132,4 +146,27 @@ pub fn replicate(frame: &Tensor, channels: usize) -> Tensor {
     let mut shape = frame.shape.clone();
     shape[1] = channels;
     Tensor::f32(shape, plane.repeat(channels))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Continuing a draw gives the frames the longer draw would have held, simulated or from a
+    /// folder, so a pass can add frames later without repeating any.
+    #[test]
+    fn a_draw_continued_is_the_longer_draw() {
+        let pixels = |set: &CalibrationSet| set.frames.iter().map(|f| f.image.as_f32().unwrap().to_vec()).collect::<Vec<_>>();
+        let whole = calibration_frames(None, 5, 24, 32, 9).unwrap();
+        let tail = calibration_frames_from(None, 3, 2, 24, 32, 9).unwrap();
+        assert_eq!(pixels(&tail), pixels(&whole)[3..]);
+        assert_ne!(pixels(&tail)[0], pixels(&whole)[0]);
+
+        let dir = tempfile::tempdir().unwrap();
+        for (i, f) in whole.frames.iter().enumerate() {
+            std::fs::write(dir.path().join(format!("f{i}.npy")), crate::optics::npy::to_bytes(&[24, 32], f.image.as_f32().unwrap())).unwrap();
+        }
+        let folder = calibration_frames_from(Some(dir.path()), 3, 4, 24, 32, 9).unwrap();
+        assert_eq!(pixels(&folder), pixels(&whole)[3..]);
+    }
 }

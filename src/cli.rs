@@ -198,7 +198,8 @@ pub enum Command {
         #[arg(long)]
         tract_fp16: bool,
         /// Total time budget of the pruned variants' recovery by distillation, shared among the
-        /// recipe's recover passes (default: the recipe's, 19 minutes).
+        /// recipe's recover passes (default: the recipe's, 19 minutes); a shorter one trains on
+        /// proportionally fewer of the recipe's frames, at least 512.
         #[arg(long)]
         recover_minutes: Option<f64>,
         /// Threads for ONNX Runtime and tract alike (default: every core).
@@ -227,7 +228,8 @@ pub enum Command {
         #[arg(long, default_value_t = 16)]
         frames: usize,
         /// Total time budget of the recovery by distillation, shared among the recipe's recover
-        /// passes (default: the recipe's, 19 minutes).
+        /// passes (default: the recipe's, 19 minutes); a shorter one trains on proportionally
+        /// fewer of the recipe's frames, at least 512.
         #[arg(long)]
         recover_minutes: Option<f64>,
         /// Timed runs per model and engine.

@@ -92,22 +92,34 @@ pub(crate) fn last_pass_of(text: &str, name: &str) -> Result<String> {
     Recipe { name: name.into(), description: format!("the last pass of {}", r.name), passes: vec![last] }.to_yaml()
 }
 
+/// The fewest training frames a shortened recovery is given: the recover pass's default.
+/// A recipe's frame count is sized for its own minutes; a recovery of a tenth of them sees a
+/// tenth of the frames, and drawing the rest cost 26 s of a 2-minute demo on 2 cores.
+const SHORT_RECOVERY_FRAMES: f64 = 512.0;
+
 /// `text` with its recovery's total time budget set to `minutes` (unchanged when None),
 /// shared among its `recover` passes in the recipe's own proportions (a recipe that prunes
-/// in stages recovers after each).
+/// in stages recovers after each). A pass given fewer minutes than its own trains on
+/// proportionally fewer frames, never fewer than SHORT_RECOVERY_FRAMES (nor more than it
+/// asked for).
 pub(crate) fn with_recover_minutes(text: &str, minutes: Option<f64>) -> Result<String> {
     let Some(minutes) = minutes else { return Ok(text.to_string()) };
     let mut r = Recipe::parse(text)?;
-    let default = crate::passes::recover::Options::default().minutes;
-    let own = |p: &crate::pipeline::recipe::PassSpec| p.options.get("minutes").and_then(|m| m.as_f64()).unwrap_or(default);
+    let defaults = crate::passes::recover::Options::default();
+    let own = |p: &crate::pipeline::recipe::PassSpec| p.options.get("minutes").and_then(|m| m.as_f64()).unwrap_or(defaults.minutes);
     let total: f64 = r.passes.iter().filter(|p| p.name == "recover").map(own).sum::<f64>().max(f64::MIN_POSITIVE);
     for p in r.passes.iter_mut().filter(|p| p.name == "recover") {
         let share = minutes * own(p) / total;
+        let frames = p.options.get("frames").and_then(|f| f.as_u64()).unwrap_or(defaults.frames as u64) as f64;
+        let fewer = (frames * share / own(p)).max(SHORT_RECOVERY_FRAMES).min(frames).round() as u64;
         let mut m = match &p.options {
             yaml_serde::Value::Mapping(m) => m.clone(),
             _ => yaml_serde::Mapping::new(),
         };
         m.insert("minutes".into(), share.into());
+        if p.options.get("frames").is_some() {
+            m.insert("frames".into(), fewer.into());
+        }
         p.options = yaml_serde::Value::Mapping(m);
     }
     r.to_yaml()
@@ -302,12 +314,19 @@ mod tests {
 
     #[test]
     fn recover_minutes_are_shared_in_the_recipes_proportions() {
-        let text = "name: t\npasses:\n  - prune: {ratio: 0.5}\n  - recover: {minutes: 6, epochs: 300}\n  - prune: {ratio: 0.5}\n  - recover\n";
+        let text = "name: t\npasses:\n  - prune: {ratio: 0.5}\n  - recover: {minutes: 6, epochs: 300, frames: 2048}\n  - prune: {ratio: 0.5}\n  - recover\n";
         let r = Recipe::parse(&with_recover_minutes(text, Some(2.1)).unwrap()).unwrap();
         let minutes: Vec<f64> = r.passes.iter().filter(|p| p.name == "recover").map(|p| p.options.get("minutes").unwrap().as_f64().unwrap()).collect();
         // 6 and the default 15 minutes: 2.1 shared 6:15.
         assert!((minutes[0] - 0.6).abs() < 1e-9 && (minutes[1] - 1.5).abs() < 1e-9, "{minutes:?}");
         assert_eq!(r.passes[1].options.get("epochs").unwrap().as_u64(), Some(300));
+        // A tenth of its minutes: a tenth of 2048 frames, held at 512; the default stays unset.
+        assert_eq!(r.passes[1].options.get("frames").unwrap().as_u64(), Some(512));
+        assert!(r.passes[3].options.get("frames").is_none());
+        let longer = Recipe::parse(&with_recover_minutes(text, Some(42.0)).unwrap()).unwrap();
+        assert_eq!(longer.passes[1].options.get("frames").unwrap().as_u64(), Some(2048));
+        let half = Recipe::parse(&with_recover_minutes("name: t\npasses:\n  - recover: {minutes: 19, frames: 2048}\n", Some(9.5)).unwrap()).unwrap();
+        assert_eq!(half.passes[0].options.get("frames").unwrap().as_u64(), Some(1024));
         assert_eq!(with_recover_minutes(text, None).unwrap(), text);
     }
 }

@@ -16,7 +16,7 @@
 //! fake-quantized forward), and the outputs' error per channel group on held-out frames
 //! (and under each of `calib_conditions`, the stress conditions mixed into calibration).
 
-use crate::calib_frames::image_feeds;
+use crate::calib_frames::{image_feeds, image_feeds_from};
 use crate::ir::{infer, Graph};
 use crate::onnx::proto::ModelProto;
 use crate::pipeline::{Clock, Pass, PassContext};
@@ -268,8 +268,9 @@ impl Pass for Quantize {
                 // Frames beyond the calibration set come after the held-out ones (the same
                 // draw, longer), so training never sees a frame that judges it.
                 let wanted = crate::calib_frames::affordable_frames("qat", &graph, &inf, q.frames);
-                let more = if wanted > calib && !overlap { image_feeds(&graph, &inf, cx.calib.as_deref(), wanted + held_out.len(), o.seed)?.0 } else { Vec::new() };
-                let train = feeds.iter().chain(more.iter().skip(calib + held_out.len())).map(|f| f[0].1.clone()).collect();
+                let drawn = calib + held_out.len();
+                let more = if wanted > calib && !overlap { image_feeds_from(&graph, &inf, cx.calib.as_deref(), drawn, wanted - calib, o.seed)?.0 } else { Vec::new() };
+                let train = feeds.iter().chain(more.iter()).map(|f| f[0].1.clone()).collect();
                 let (model, report, errors) = quantization_aware(&float, quantized, train, &held_out, o, q, threads)?;
                 (model, Some(report), Some(errors))
             }
