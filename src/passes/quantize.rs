@@ -266,7 +266,7 @@ impl Pass for Quantize {
             None => (quantized, None, None),
             Some(q) => {
                 // Frames beyond the calibration set come after the held-out ones (the same
-                // draw, longer), so training never sees a frame that judges it.
+                // draw, continued), so training never sees a frame that judges it.
                 let wanted = crate::calib_frames::affordable_frames("qat", &graph, &inf, q.frames);
                 let drawn = calib + held_out.len();
                 let more = if wanted > calib && !overlap { image_feeds_from(&graph, &inf, cx.calib.as_deref(), drawn, wanted - calib, o.seed)?.0 } else { Vec::new() };
