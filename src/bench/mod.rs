@@ -92,16 +92,13 @@ pub(crate) fn last_pass_of(text: &str, name: &str) -> Result<String> {
     Recipe { name: name.into(), description: format!("the last pass of {}", r.name), passes: vec![last] }.to_yaml()
 }
 
-/// The fewest training frames a shortened recovery is given: the recover pass's default.
-/// A recipe's frame count is sized for its own minutes; a recovery of a tenth of them sees a
-/// tenth of the frames, and drawing the rest cost 26 s of a 2-minute demo on 2 cores.
-const SHORT_RECOVERY_FRAMES: f64 = 512.0;
-
 /// `text` with its recovery's total time budget set to `minutes` (unchanged when None),
 /// shared among its `recover` passes in the recipe's own proportions (a recipe that prunes
-/// in stages recovers after each). A pass given fewer minutes than its own trains on
-/// proportionally fewer frames, never fewer than SHORT_RECOVERY_FRAMES (nor more than it
-/// asked for).
+/// in stages recovers after each). A pass that names its frames and is given fewer minutes
+/// than its own trains on proportionally fewer, never fewer than the pass's default (nor more
+/// than it asked for): a recipe's frame count is sized for its own minutes, a recovery of a
+/// tenth of them sees a tenth of the frames, and drawing the rest cost 26 s of a 2-minute
+/// demo on 2 cores.
 pub(crate) fn with_recover_minutes(text: &str, minutes: Option<f64>) -> Result<String> {
     let Some(minutes) = minutes else { return Ok(text.to_string()) };
     let mut r = Recipe::parse(text)?;
@@ -110,14 +107,14 @@ pub(crate) fn with_recover_minutes(text: &str, minutes: Option<f64>) -> Result<S
     let total: f64 = r.passes.iter().filter(|p| p.name == "recover").map(own).sum::<f64>().max(f64::MIN_POSITIVE);
     for p in r.passes.iter_mut().filter(|p| p.name == "recover") {
         let share = minutes * own(p) / total;
-        let frames = p.options.get("frames").and_then(|f| f.as_u64()).unwrap_or(defaults.frames as u64) as f64;
-        let fewer = (frames * share / own(p)).max(SHORT_RECOVERY_FRAMES).min(frames).round() as u64;
+        let asked = p.options.get("frames").and_then(|f| f.as_u64());
         let mut m = match &p.options {
             yaml_serde::Value::Mapping(m) => m.clone(),
             _ => yaml_serde::Mapping::new(),
         };
         m.insert("minutes".into(), share.into());
-        if p.options.get("frames").is_some() {
+        if let Some(asked) = asked {
+            let fewer = (asked as f64 * share / own(p)).max(defaults.frames as f64).min(asked as f64).round() as u64;
             m.insert("frames".into(), fewer.into());
         }
         p.options = yaml_serde::Value::Mapping(m);

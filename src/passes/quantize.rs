@@ -270,7 +270,7 @@ impl Pass for Quantize {
                 let wanted = crate::calib_frames::affordable_frames("qat", &graph, &inf, q.frames);
                 let drawn = calib + held_out.len();
                 let more = if wanted > calib && !overlap { image_feeds_from(&graph, &inf, cx.calib.as_deref(), drawn, wanted - calib, o.seed)?.0 } else { Vec::new() };
-                let train = feeds.iter().chain(more.iter()).map(|f| f[0].1.clone()).collect();
+                let train = feeds.iter().map(|f| f[0].1.clone()).chain(more.into_iter().filter_map(|f| f.into_iter().next().map(|(_, t)| t))).collect();
                 let (model, report, errors) = quantization_aware(&float, quantized, train, &held_out, o, q, threads)?;
                 (model, Some(report), Some(errors))
             }
