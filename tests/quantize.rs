@@ -370,6 +370,34 @@ fn quantization_aware_recovery_trains_the_emitted_integers() {
     scales_are_finite(&b.join("model.onnx"));
 }
 
+/// After pruning, QAT can distill from the model before it (`teacher: original`): the report
+/// names the teacher and measures against it. Without a prune before it the option is refused
+/// before any frame is drawn.
+#[test]
+fn quantization_aware_recovery_can_distill_from_the_unpruned_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let quantize = "calib_frames: 64, bias_correction: true, error_budget: 0.1";
+    let qat = "calib_frames: 32, bias_correction: true, error_budget: 10.0, qat: {teacher: original, minutes: 10, epochs: 4, lr: 2.0e-3, batch: 8, frames: 48}";
+    let pruned = variant(dir.path(), "passes/detect-pruned-int8-norecover.yaml", quantize, qat);
+    let r = compile(TINY, &pruned, &dir.path().join("qat"), &[])["qat"].clone();
+    println!("{}", serde_json::to_string_pretty(&r).unwrap());
+    assert_eq!(r["teacher"], "original", "{r}");
+    assert!(r["training"]["steps"].as_u64().unwrap() >= 4, "{r}");
+    // Pruned without recovery, the INT8 model starts far from the unpruned one and a few
+    // steps towards it show in the held-out distillation loss, which decides what is kept.
+    let (before, after) = (r["training"]["held_out_loss_before"].as_f64().unwrap(), r["training"]["held_out_loss_after"].as_f64().unwrap());
+    assert!(after < before, "QAT brings the pruned INT8 model closer to the unpruned float one: {before} -> {after}");
+    assert_eq!(r["kept"], true);
+    assert!(r["output_rel_l2"]["before"]["detections/classes"].is_f64(), "errors against the unpruned model are reported: {r}");
+
+    let unpruned = variant(dir.path(), "passes/detect-int8.yaml", "error_budget: 0.1", "error_budget: 0.1, qat: {teacher: original}");
+    let out = dir.path().join("refused");
+    let r = cli(&["compile", TINY, "--pipeline", &unpruned, "--psf", PSF, "-o", out.to_str().unwrap()]);
+    assert_eq!(r.code, 2, "{}", r.stderr);
+    assert!(r.stderr.contains("teacher: original") && r.stderr.contains("prune"), "{}", r.stderr);
+    assert!(!out.exists(), "nothing written");
+}
+
 /// Calibration runs frames in parallel and absorbs them in order: any number of workers
 /// gives the histograms and channel means of one session taking the frames one by one.
 #[test]

@@ -5,7 +5,9 @@
 //! forward it trains is the emitted model's (same scales, zero points, rounding, clipping,
 //! layers kept float), and what comes back are new integers in the same initializers. The
 //! float model (unpruned, or pruned and recovered) is the teacher, matched on the head
-//! convolutions' logits as in `recover`. Activation scales stay those calibration chose.
+//! convolutions' logits as in `recover`; after pruning, the model before it can be instead
+//! (`qat: {teacher: original}`), so training goes on recovering what pruning lost. Activation
+//! scales stay those calibration chose.
 
 use crate::metrics::tensor_error::ErrorSums;
 use crate::onnx::proto::ModelProto;
