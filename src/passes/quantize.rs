@@ -378,20 +378,14 @@ fn quantization_aware(float: &ModelProto, original: Option<&crate::pipeline::Tea
         bail!("qat has {} calibration frames for batches of {}; raise calib_frames or lower qat's batch", frames.len(), q.batch);
     }
     let mut schedule = crate::quant::qat::schedule(q.minutes, q.epochs, q.lr, q.batch, o.seed, q.device.clone());
-    let mut heads = crate::prune::recover::head_specs(float)?;
-    let (teacher, view) = match original {
-        None => (float, None),
+    let (teacher, view, heads) = match original {
+        None => (float, None, crate::prune::recover::head_specs(float)?),
         Some(t) => {
             // Going on from recovery: its terms for a pruned student (the head's logits only,
             // since the QDQ graph renames the features recovery also matches).
             let r = super::recover::Options::default();
             (schedule.box_edges, schedule.class_foreground) = (r.box_edges, r.class_foreground);
-            for h in &mut heads {
-                if let Some(k) = h["value"].as_str().and_then(|v| t.kept.get(v)) {
-                    h["keep"] = serde_json::json!(k);
-                }
-            }
-            (&t.model, crate::scene::compare::SceneView::of_teacher(float, &t.model)?)
+            (&t.model, crate::scene::compare::SceneView::of_teacher(float, &t.model)?, crate::prune::recover::head_specs_against(float, &t.kept)?)
         }
     };
     let student = crate::quant::qat::Student::symmetric(heads, o.weight_bits);

@@ -79,6 +79,18 @@ pub fn head_specs(model: &ModelProto) -> Result<Vec<serde_json::Value>> {
     Ok(specs)
 }
 
+/// `head_specs` of a student distilled from a teacher it was cut from: each head
+/// convolution a scene dropped rows from reads the teacher's kept rows.
+pub fn head_specs_against(student: &ModelProto, kept: &HashMap<String, Vec<usize>>) -> Result<Vec<serde_json::Value>> {
+    let mut heads = head_specs(student)?;
+    for h in &mut heads {
+        if let Some(k) = h["value"].as_str().and_then(|v| kept.get(v)) {
+            h["keep"] = serde_json::json!(k);
+        }
+    }
+    Ok(heads)
+}
+
 /// The head values of a model from rknn-legalize (per-stride boxes and scores), for the
 /// worker: each output's logits (a Sigmoid's input), YOLOv8's box distributions as they are.
 /// `student_value` names the student's copy of a value where it differs (a quantized model's
@@ -158,13 +170,7 @@ fn branch_root(g: &Graph, v: &str) -> Option<String> {
 /// Trains `student`'s weights towards `teacher` on `frames` (each [1, 1, H, W]), measuring on
 /// `held_out`; writes them into `student`.
 pub fn distill(student: &mut ModelProto, teacher: &ModelProto, kept: &HashMap<String, Vec<usize>>, frames: &[Tensor], held_out: &[Tensor], o: &Options) -> Result<Outcome> {
-    let mut heads = head_specs(student)?;
-    // Rows a scene dropped from a head convolution: the teacher's kept rows.
-    for h in &mut heads {
-        if let Some(k) = h["value"].as_str().and_then(|v| kept.get(v)) {
-            h["keep"] = serde_json::json!(k);
-        }
-    }
+    let heads = head_specs_against(student, kept)?;
     let features = feature_specs(student, kept)?;
     let job = Job { heads, features, extra: serde_json::json!({}), outputs: false, label: "recover" };
     Ok(train(student, teacher, frames, held_out, o, job)?.0)
