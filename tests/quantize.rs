@@ -326,14 +326,7 @@ fn learned_rounding_moves_weights_one_step_and_lowers_layer_error() {
 #[test]
 fn quantization_aware_recovery_trains_the_emitted_integers() {
     let dir = tempfile::tempdir().unwrap();
-    let fast = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 32");
-    let plain = variant(dir.path(), &fast, "error_budget: 0.1", "error_budget: 10.0");
-    // The epochs end it (about 15 s on 2 idle cores); the minutes only bound a loaded machine,
-    // where 2 of them once left 11 of its 24 steps.
-    let qat = variant(dir.path(), &plain, "error_budget: 10.0", "error_budget: 10.0, qat: {minutes: 10, epochs: 4, lr: 2.0e-3, batch: 8, frames: 48}");
-    let (a, b) = (dir.path().join("plain"), dir.path().join("qat"));
-    compile(TINY, &plain, &a, &[]);
-    let r = compile(TINY, &qat, &b, &[])["qat"].clone();
+    let (a, b, r) = plain_and_qat(dir.path(), "");
     println!("{}", serde_json::to_string_pretty(&r).unwrap());
     assert!(r["training"]["steps"].as_u64().unwrap() >= 4, "{r}");
     assert_eq!(r["frames"], 48, "32 calibration frames and 16 drawn after the held-out ones");
@@ -341,16 +334,7 @@ fn quantization_aware_recovery_trains_the_emitted_integers() {
     let (before, after) = (worst(&r["output_rel_l2"]["before"]), worst(&r["output_rel_l2"]["after"]));
     assert!(after < before, "QAT brings the worst output group closer to float: {before} -> {after}");
     assert_eq!(r["kept"], true);
-    // Float noise in a quantized graph: ORT's reference and integer kernels differ by this
-    // much from each other (a value rounded across a step travels to the outputs).
-    let e = &r["emitted_vs_fake_quant_rel_l2"];
-    for (output, floor) in e["reference_vs_integer_kernels"].as_object().unwrap() {
-        let floor = floor.as_f64().unwrap();
-        for kernels in ["reference_kernels", "integer_kernels"] {
-            let d = e[kernels][output].as_f64().unwrap();
-            assert!(d <= 2.0 * floor + 1e-5, "{output} on ORT's {kernels} differs from the fake-quantized forward by {d}, more than twice the {floor} between ORT's own kernels");
-        }
-    }
+    reproduces_fake_quant(&r);
     let (ga, gb) = (load(&a.join("model.onnx")).graph.unwrap(), load(&b.join("model.onnx")).graph.unwrap());
     assert_eq!(ga.node, gb.node, "QAT changes values only");
     let (mut changed, mut weights) = (0, 0);
@@ -368,6 +352,34 @@ fn quantization_aware_recovery_trains_the_emitted_integers() {
     }
     assert!(changed > 0 && changed < weights, "{changed} of {weights} int8 weights moved");
     scales_are_finite(&b.join("model.onnx"));
+}
+
+/// The tiny model compiled with `detect-int8` on 32 calibration frames, into `dir/plain`, and
+/// the same with a short QAT (its options followed by `more`) into `dir/qat`; the QAT report.
+fn plain_and_qat(dir: &Path, more: &str) -> (std::path::PathBuf, std::path::PathBuf, serde_json::Value) {
+    let fast = variant(dir, "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 32");
+    let plain = variant(dir, &fast, "error_budget: 0.1", "error_budget: 10.0");
+    // The epochs end it (about 15 s on 2 idle cores); the minutes only bound a loaded machine,
+    // where 2 of them once left 11 of its 24 steps.
+    let qat = variant(dir, &plain, "error_budget: 10.0", &format!("error_budget: 10.0, qat: {{minutes: 10, epochs: 4, lr: 2.0e-3, batch: 8, frames: 48{more}}}"));
+    let (a, b) = (dir.join("plain"), dir.join("qat"));
+    compile(TINY, &plain, &a, &[]);
+    let r = compile(TINY, &qat, &b, &[])["qat"].clone();
+    (a, b, r)
+}
+
+/// The written QAT model on ONNX Runtime reproduces the worker's fake-quantized forward within
+/// twice the float noise of a quantized graph: ORT's reference and integer kernels differ by
+/// that much from each other (a value rounded across a step travels to the outputs).
+fn reproduces_fake_quant(qat: &serde_json::Value) {
+    let e = &qat["emitted_vs_fake_quant_rel_l2"];
+    for (output, floor) in e["reference_vs_integer_kernels"].as_object().unwrap() {
+        let floor = floor.as_f64().unwrap();
+        for kernels in ["reference_kernels", "integer_kernels"] {
+            let d = e[kernels][output].as_f64().unwrap();
+            assert!(d <= 2.0 * floor + 1e-5, "{output} on ORT's {kernels} differs from the fake-quantized forward by {d}, more than twice the {floor} between ORT's own kernels");
+        }
+    }
 }
 
 /// After pruning, QAT can distill from the model before it (`teacher: original`): the report
@@ -395,6 +407,60 @@ fn quantization_aware_recovery_can_distill_from_the_unpruned_model() {
     let r = cli(&["compile", TINY, "--pipeline", &unpruned, "--psf", PSF, "-o", out.to_str().unwrap()]);
     assert_eq!(r.code, 2, "{}", r.stderr);
     assert!(r.stderr.contains("teacher: original") && r.stderr.contains("prune"), "{}", r.stderr);
+    assert!(!out.exists(), "nothing written");
+}
+
+/// QAT with `scales: true` trains the activation scales too (LSQ). The written model still
+/// reproduces the fake-quantized forward; each int32 bias sits on its input's new scale times
+/// its weight's (what ONNX Runtime's integer convolution assumes); a data-movement op's input
+/// and output scales stay one scale (ORT runs such an op on integers only then).
+#[test]
+fn quantization_aware_recovery_can_learn_activation_scales() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b, r) = plain_and_qat(dir.path(), ", scales: true");
+    assert!(r["training"]["steps"].as_u64().unwrap() >= 4, "{r}");
+    reproduces_fake_quant(&r);
+    // The comparison below reads the trained model, so it must have been kept.
+    assert_eq!(r["kept"], true, "{r}");
+    let (ga, gb) = (load(&a.join("model.onnx")).graph.unwrap(), load(&b.join("model.onnx")).graph.unwrap());
+    assert_eq!(ga.node, gb.node, "QAT changes values only");
+    let values = |g: &pdi_compile::onnx::proto::GraphProto| -> std::collections::HashMap<String, Vec<f64>> {
+        g.initializer.iter().map(|t| (t.name.clone(), pdi_compile::onnx::tensor_proto::to_tensor(t).unwrap().data.to_f64())).collect()
+    };
+    let (va, vb) = (values(&ga), values(&gb));
+    let activation_scales: Vec<&str> = gb.node.iter().filter(|n| n.op_type == "QuantizeLinear").map(|n| n.input[1].as_str()).collect();
+    let moved = activation_scales.iter().filter(|s| va[**s] != vb[**s]).count();
+    assert!(moved > 0, "no activation scale of {} moved", activation_scales.len());
+    let dq_scale = |g: &pdi_compile::onnx::proto::GraphProto, v: &str| g.node.iter().find(|n| n.op_type == "DequantizeLinear" && n.output[0] == v).map(|n| n.input[1].clone());
+    let mut biases = 0;
+    for n in gb.node.iter().filter(|n| n.op_type == "Conv" && n.input.len() > 2) {
+        let (Some(x), Some(w), Some(bias)) = (dq_scale(&gb, &n.input[0]), dq_scale(&gb, &n.input[1]), dq_scale(&gb, &n.input[2])) else { continue };
+        for (k, s) in vb[&bias].iter().enumerate() {
+            let want = (vb[&x][0] as f32 * vb[&w][k] as f32) as f64;
+            assert!((s - want).abs() <= 1e-6 * want, "{}: bias scale {s} is not input scale x weight scale {want}", n.name);
+        }
+        biases += 1;
+    }
+    assert!(biases > 0);
+    // The plan's data-movement ops (and upsampling deconvolutions) take their input's
+    // parameters; a Concat's output is calibrated on its own and may match an input's by chance.
+    let mut shared = 0;
+    for n in gb.node.iter().filter(|n| ["MaxPool", "Resize", "Split", "Slice", "ConvTranspose"].contains(&n.op_type.as_str())) {
+        let Some(x) = dq_scale(&gb, &n.input[0]) else { continue };
+        for q in gb.node.iter().filter(|q| q.op_type == "QuantizeLinear" && n.output.contains(&q.input[0])) {
+            assert_eq!(va[&x], va[&q.input[1]], "{} ({}): calibration gave its input and output one scale", n.name, n.op_type);
+            assert_eq!(vb[&x], vb[&q.input[1]], "{} ({}): input and output scales were equal and no longer are", n.name, n.op_type);
+            shared += 1;
+        }
+    }
+    assert!(shared > 0, "the model has a data-movement op between quantized values");
+    scales_are_finite(&b.join("model.onnx"));
+
+    let bad = variant(dir.path(), "passes/detect-int8.yaml", "error_budget: 0.1", "error_budget: 0.1, qat: {class_foreground: -1.0}");
+    let out = dir.path().join("refused");
+    let r = cli(&["compile", TINY, "--pipeline", &bad, "--psf", PSF, "-o", out.to_str().unwrap()]);
+    assert_eq!(r.code, 2, "{}", r.stderr);
+    assert!(r.stderr.contains("class_foreground"), "{}", r.stderr);
     assert!(!out.exists(), "nothing written");
 }
 

@@ -142,7 +142,7 @@ impl Pass for RknnQat {
         let heads = crate::prune::recover::split_head_specs(model, &dequantized)?;
         let schedule = qat::schedule(o.minutes, o.epochs, o.lr, o.batch, o.seed, o.device.clone());
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-        let student = Student { heads, weight_range: at_points::WEIGHT_RANGE, pin_extremes: true };
+        let student = Student { heads, scale_groups: Vec::new(), scale_lr: 1.0, weight_range: at_points::WEIGHT_RANGE, pin_extremes: true };
         let t = qat::train(&quantized, model, student, &frames, &held, &schedule, threads)?;
         // The NPU sums in exact int32: ONNX Runtime's reference kernels compute what it does,
         // its x86 integer kernels do not (they saturate with 8-bit weights without VNNI).

@@ -329,13 +329,20 @@ class Graph(torch.nn.Module):
     (int8 weights) or int32's range (biases) wherever it is read, so the forward is the
     emitted model's and the parameter keeps what a step moved below one integer.
     With `only` (a set of initializer names), exactly those float initializers train, whatever
-    reads them: a crop's halo and pool-correction constants, the network's weights fixed."""
+    reads them: a crop's halo and pool-correction constants, the network's weights fixed.
+    With `scale_groups` (lists of activation scale initializers that must stay equal), each
+    group's scale trains too (LSQ: the fake quantizer's own gradient with respect to its
+    step), and the int32 biases read with it are requantized to it (`requantize_bias`)."""
 
-    def __init__(self, model, trainable=True, weight_qmax=127, fuse=True, pin_extremes=False, weight_qmin=None, only=None):
+    def __init__(self, model, trainable=True, weight_qmax=127, fuse=True, pin_extremes=False, weight_qmin=None, only=None, scale_groups=()):
         super().__init__()
         g = model.graph
         self.nodes = list(g.node)
         self.fused = fused_pairs(g) if fuse else {}
+        # The fused pairs' scale initializers, so that a learned scale reaches them.
+        self.fused_scale = {n.output[0]: n.input[1] for n in self.nodes if n.op_type == "QuantizeLinear" and n.output[0] in self.fused}
+        group_of = {name: k for k, names in enumerate(scale_groups) for name in names} if trainable else {}
+        self.scales = {}  # learned scale's parameter key -> its group's initializer names
         self.silu = silu_pairs(g) if fuse else {}
         self.silu_gates = {gate for _, gate in self.silu.values()}
         self.input = [i.name for i in g.input if i.name not in {t.name for t in g.initializer}][0]
@@ -348,7 +355,17 @@ class Graph(torch.nn.Module):
         self.pinned = {}  # parameter key -> mask of integers that must not move
         for t in g.initializer:
             arr = numpy_helper.to_array(t)
-            if only is not None:
+            if t.name in group_of:
+                # One parameter per group, from the group's first initializer met.
+                found = [k for k, names in self.scales.items() if t.name in names]
+                if found:
+                    self.key[t.name] = found[0]
+                    continue
+                k = f"p{len(self.params)}"
+                self.params[k] = torch.nn.Parameter(torch.tensor(float(arr.reshape(())), dtype=torch.float32))
+                self.key[t.name] = k
+                self.scales[k] = set(scale_groups[group_of[t.name]])
+            elif only is not None:
                 # Exactly the named float initializers train, whichever op reads them.
                 if trainable and t.name in only and arr.dtype == np.float32:
                     k = f"p{len(self.params)}"
@@ -375,6 +392,7 @@ class Graph(torch.nn.Module):
         for n in self.nodes:
             if n.op_type == "Constant":
                 self.consts[n.output[0]] = torch.from_numpy(numpy_helper.to_array(n.attribute[0].t).copy())
+        self.requant = self.requantized_bias_inputs() if self.scales else {}
         self.plans = {}  # wanted values -> the nodes they need, computed once per request
         self.layout = torch.contiguous_format
 
@@ -411,6 +429,8 @@ class Graph(torch.nn.Module):
             k = self.key[name]
             if k in self.bounds:
                 return ste_round(self.params[k].clamp(*self.bounds[k]))
+            if k in self.scales:
+                return self.params[k].clamp(min=1e-12)
             return self.params[k]
         if name in self.consts:
             return self.consts[name]
@@ -426,7 +446,10 @@ class Graph(torch.nn.Module):
             if n.op_type == "Constant":
                 continue
             if n.op_type == "QuantizeLinear" and n.output[0] in self.fused:
-                env[n.output[0]] = fake_quant(env[n.input[0]], *self.fused[n.output[0]])
+                scale, zp, lo, hi = self.fused[n.output[0]]
+                if self.fused_scale[n.output[0]] in self.key:
+                    scale = self.value(self.fused_scale[n.output[0]], env)
+                env[n.output[0]] = fake_quant(env[n.input[0]], scale, zp, lo, hi)
                 continue
             if n.op_type == "DequantizeLinear" and n.input[0] in self.fused:
                 env[n.output[0]] = env[n.input[0]]
@@ -437,30 +460,73 @@ class Graph(torch.nn.Module):
                 env[n.output[0]] = F.silu(env[self.silu[n.output[0]][0]])
                 continue
             for o, val in zip(n.output, run_node(n, [self.value(i, env) for i in n.input])):
-                env[o] = val
+                env[o] = self.requantize_bias(o, val, env) if o in self.requant else val
         return [env[w] for w in wanted]
 
     def write_back(self, model):
         """The trained parameters into `model`'s initializers (same names, shapes, order)."""
+        rescaled = self.requantized_biases() if self.scales else {}
         for t in model.graph.initializer:
-            if t.name in self.key:
+            if t.name in rescaled:
+                t.CopyFrom(numpy_helper.from_array(rescaled[t.name], t.name))
+            elif t.name in self.key:
                 k = self.key[t.name]
                 p = self.params[k].detach()
-                if k in self.bounds:
+                if k in self.scales:
+                    arr = p.reshape(numpy_helper.to_array(t).shape).cpu().numpy().astype(np.float32)
+                elif k in self.bounds:
                     arr = torch.round(p.clamp(*self.bounds[k])).contiguous().cpu().numpy().astype(numpy_helper.to_array(t).dtype)
                 else:
                     arr = p.contiguous().cpu().numpy().astype(np.float32)
                 t.CopyFrom(numpy_helper.from_array(arr, t.name))
 
-    def param_groups(self, lr, relative):
+    def requantized_bias_inputs(self):
+        """Int32 bias DequantizeLinear outputs whose convolution's input scale is learned, with
+        that input scale's and the weight scale's names. An int32 bias's scale must be its
+        input's scale times the weight's (ONNX Runtime's integer convolution assumes it), so
+        such a bias is requantized to the product in every forward (`requantize_bias`), as
+        it will be written: the first layer's bias step (the frame's scale times a large
+        weight scale) is coarse enough that requantizing only when writing moved the outputs."""
+        dq = {n.output[0]: n for n in self.nodes if n.op_type == "DequantizeLinear"}
+        out = {}
+        for n in self.nodes:
+            if n.op_type not in ("Conv", "ConvTranspose") or len(n.input) < 3 or not all(i in dq for i in n.input[:3]):
+                continue
+            x, w, b = (dq[i] for i in n.input[:3])
+            ints = self.consts.get(b.input[0]) if b.input[0] not in self.key else self.params[self.key[b.input[0]]]
+            if self.key.get(x.input[1]) in self.scales and ints is not None and (b.input[0] in self.key or ints.dtype == torch.int32):
+                out[b.output[0]] = (x.input[1], w.input[1])
+        return out
+
+    def requantize_bias(self, name, value, env):
+        """A bias (float, from its old integers) on the grid of its input's current scale."""
+        x_scale, w_scale = self.requant[name]
+        step = self.value(x_scale, env) * self.value(w_scale, env)
+        return ste_round(value / step).clamp(-INT32_IN_F32, INT32_IN_F32) * step
+
+    def requantized_biases(self):
+        """The int32 biases and scales `requantize_bias` computed, for `write_back`."""
+        dq = {n.output[0]: n for n in self.nodes if n.op_type == "DequantizeLinear"}
+        out = {}
+        with torch.no_grad():
+            for name, (x_scale, w_scale) in self.requant.items():
+                b = dq[name]
+                value = run_node(b, [self.value(i, {}) for i in b.input])[0]
+                step = self.value(x_scale, {}) * self.value(w_scale, {})
+                out[b.input[0]] = torch.round(value / step).clamp(-INT32_IN_F32, INT32_IN_F32).cpu().numpy().astype(np.int32)
+                out[b.input[1]] = step.cpu().numpy().astype(np.float32)
+        return out
+
+    def param_groups(self, lr, relative, scale_lr=1.0):
         """Adam's groups: one at `lr`, or (relative) one per tensor at lr times the tensor's
         largest magnitude, so integer weights, int32 biases and float weights all move by
-        about the same fraction of their range per step."""
+        about the same fraction of their range per step; learned scales at `scale_lr` times
+        that."""
         if not relative:
             return [{"params": list(self.parameters()), "lr": lr, "base_lr": lr}]
         groups = []
-        for p in self.parameters():
-            step = lr * max(float(p.detach().abs().max()), 1e-12)
+        for k, p in self.params.items():
+            step = lr * max(float(p.detach().abs().max()), 1e-12) * (scale_lr if k in self.scales else 1.0)
             groups.append({"params": [p], "lr": step, "base_lr": step})
         return groups
 
@@ -614,7 +680,7 @@ def train(cfg):
     student_model = onnx.load(cfg["student"])
     only = set(cfg["trainable"]) if cfg.get("trainable") is not None else None
     student = Graph(student_model, weight_qmax=cfg.get("weight_qmax", 127), pin_extremes=cfg.get("pin_extremes", False),
-                    weight_qmin=cfg.get("weight_qmin"), only=only).to_device(dev)
+                    weight_qmin=cfg.get("weight_qmin"), only=only, scale_groups=cfg.get("scale_groups", ())).to_device(dev)
     heads, features = cfg["heads"], cfg.get("features", [])
     names = [h["value"] for h in heads] + [f["value"] for f in features]
     # The student's copy of a value where it differs (a quantized value's dequantized copy).
@@ -638,7 +704,7 @@ def train(cfg):
                 tot += float(total_loss(student(student_in(x), student_names), teacher(x, names), heads, features)) * len(x)
             return tot / len(held)
 
-    opt = torch.optim.Adam(student.param_groups(cfg["lr"], cfg.get("relative_lr", False)))
+    opt = torch.optim.Adam(student.param_groups(cfg["lr"], cfg.get("relative_lr", False), cfg.get("scale_lr", 1.0)))
     start, before = time.time(), held_loss()
     emit({"event": "start", "device": str(dev), "parameters": sum(p.numel() for p in student.parameters()), "held_out_loss": before, "frames": n})
     most = cfg["epochs"] * per_epoch

@@ -7,7 +7,9 @@
 //! float model (unpruned, or pruned and recovered) is the teacher, matched on the head
 //! convolutions' logits as in `recover`; after pruning, the model before it can be instead
 //! (`qat: {teacher: original}`), so training goes on recovering what pruning lost. Activation
-//! scales stay those calibration chose.
+//! scales stay those calibration chose, unless `scales` trains them too (LSQ: the fake
+//! quantizer's gradient with respect to its step; a shared scale moves as one, and int32
+//! biases follow their inputs' scales).
 
 use crate::metrics::tensor_error::ErrorSums;
 use crate::onnx::proto::ModelProto;
@@ -44,12 +46,32 @@ pub struct Trained {
     pub reproduced: serde_json::Value,
 }
 
+/// The activation scale initializers of `quantized`, grouped by the value whose parameters
+/// they take (`root`: a data-movement op's output takes its input's, and ONNX Runtime runs
+/// such an op on integers only while the two stay equal). `dequantized` maps each quantized
+/// value to its DequantizeLinear output, whose scale input is the initializer.
+pub fn scale_groups(quantized: &ModelProto, dequantized: &BTreeMap<String, String>, root: impl Fn(&str) -> String) -> Vec<Vec<String>> {
+    let Some(g) = quantized.graph.as_ref() else { return Vec::new() };
+    let scale_of: std::collections::HashMap<&str, &str> = g.node.iter().filter(|n| n.op_type == "DequantizeLinear" && n.input.len() > 1).map(|n| (n.output[0].as_str(), n.input[1].as_str())).collect();
+    let mut groups: BTreeMap<String, Vec<String>> = BTreeMap::new();
+    for (v, dq) in dequantized {
+        if let Some(s) = scale_of.get(dq.as_str()) {
+            groups.entry(root(v)).or_default().push(s.to_string());
+        }
+    }
+    groups.into_values().collect()
+}
+
 /// What the worker trains: the head values it matches (`recover::head_specs`, or
 /// `recover::split_head_specs` for a model from rknn-legalize), the weights' range, and
 /// whether weights at the range's ends stay there (a toolchain that requantizes the
 /// dequantized weights per channel by their peak then finds the same grid).
 pub struct Student {
     pub heads: Vec<serde_json::Value>,
+    /// Activation scale initializers that train, each group as one scale (empty: none do).
+    pub scale_groups: Vec<Vec<String>>,
+    /// Their step relative to the weights'.
+    pub scale_lr: f64,
     /// The int8 weights' range: (-q, q) for symmetric `bits`-bit weights, (-128, 127) for
     /// asymmetric ones.
     pub weight_range: (i32, i32),
@@ -60,7 +82,7 @@ impl Student {
     /// Symmetric `bits`-bit weights.
     pub fn symmetric(heads: Vec<serde_json::Value>, bits: u32) -> Student {
         let q = (1i32 << (bits - 1)) - 1;
-        Student { heads, weight_range: (-q, q), pin_extremes: false }
+        Student { heads, scale_groups: Vec::new(), scale_lr: 1.0, weight_range: (-q, q), pin_extremes: false }
     }
 }
 
@@ -72,7 +94,7 @@ pub fn train(quantized: &ModelProto, float: &ModelProto, student: Student, frame
     // Steps relative to each tensor's largest magnitude: an int8 weight, an int32 bias (in
     // units thousands of times smaller) and a float layer's weight all move alike.
     let (qmin, qmax) = student.weight_range;
-    let extra = serde_json::json!({"weight_qmin": qmin, "weight_qmax": qmax, "relative_lr": true, "pin_extremes": student.pin_extremes});
+    let extra = serde_json::json!({"weight_qmin": qmin, "weight_qmax": qmax, "relative_lr": true, "pin_extremes": student.pin_extremes, "scale_groups": student.scale_groups, "scale_lr": student.scale_lr});
     let mut model = quantized.clone();
     let (outcome, fake_quant) = recover::train(&mut model, float, frames, &held, o, Job { heads: student.heads, features: Vec::new(), extra, outputs: true, label: "qat" })?;
     let names: Vec<String> = model.graph.as_ref().map(|g| g.output.iter().map(|o| o.name.clone()).collect()).unwrap_or_default();
