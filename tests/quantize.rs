@@ -24,10 +24,23 @@ fn variant(dir: &Path, recipe: &str, from: &str, to: &str) -> String {
     path.to_str().unwrap().to_string()
 }
 
-fn compile(model: &str, recipe: &str, out: &Path, extra: &[&str]) -> serde_json::Value {
+/// `pdi-compile compile model --pipeline recipe --psf PSF -o out --json extra...`.
+fn run_compile(model: &str, recipe: &str, out: &Path, extra: &[&str]) -> CliResult {
     let mut args = vec!["compile", model, "--pipeline", recipe, "--psf", PSF, "-o", out.to_str().unwrap(), "--json"];
     args.extend_from_slice(extra);
-    let r = cli(&args);
+    cli(&args)
+}
+
+/// A compile that must be refused: exit 2 with nothing written; its stderr.
+fn refused(model: &str, recipe: &str, out: &Path, extra: &[&str]) -> String {
+    let r = run_compile(model, recipe, out, extra);
+    assert_eq!(r.code, 2, "{}", r.stderr);
+    assert!(!out.exists(), "nothing written");
+    r.stderr
+}
+
+fn compile(model: &str, recipe: &str, out: &Path, extra: &[&str]) -> serde_json::Value {
+    let r = run_compile(model, recipe, out, extra);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
     report["passes"].as_array().unwrap().last().unwrap()["details"].clone()
@@ -148,11 +161,8 @@ fn degenerate_calibration_sets_give_finite_scales_or_a_clear_refusal() {
             assert!(t.data.to_f64().iter().all(|v| v.is_finite()), "{name} finite");
         }
     }
-    let out = dir.path().join("zeros_out");
-    let r = cli(&["compile", V5, "--pipeline", &recipe, "--psf", PSF, "--calib", zeros.to_str().unwrap(), "-o", out.to_str().unwrap()]);
-    assert_eq!(r.code, 2, "{}", r.stderr);
-    assert!(r.stderr.contains("0.png") && r.stderr.contains("constant"), "{}", r.stderr);
-    assert!(!out.exists(), "nothing written");
+    let stderr = refused(V5, &recipe, &dir.path().join("zeros_out"), &["--calib", zeros.to_str().unwrap()]);
+    assert!(stderr.contains("0.png") && stderr.contains("constant"), "{stderr}");
 }
 
 #[test]
@@ -403,11 +413,8 @@ fn quantization_aware_recovery_can_distill_from_the_unpruned_model() {
     assert!(r["output_rel_l2"]["before"]["detections/classes"].is_f64(), "errors against the unpruned model are reported: {r}");
 
     let unpruned = variant(dir.path(), "passes/detect-int8.yaml", "error_budget: 0.1", "error_budget: 0.1, qat: {teacher: original}");
-    let out = dir.path().join("refused");
-    let r = cli(&["compile", TINY, "--pipeline", &unpruned, "--psf", PSF, "-o", out.to_str().unwrap()]);
-    assert_eq!(r.code, 2, "{}", r.stderr);
-    assert!(r.stderr.contains("teacher: original") && r.stderr.contains("prune"), "{}", r.stderr);
-    assert!(!out.exists(), "nothing written");
+    let stderr = refused(TINY, &unpruned, &dir.path().join("refused"), &[]);
+    assert!(stderr.contains("teacher: original") && stderr.contains("prune"), "{stderr}");
 }
 
 /// QAT with `scales: true` trains the activation scales too (LSQ). The written model still
@@ -457,11 +464,8 @@ fn quantization_aware_recovery_can_learn_activation_scales() {
     scales_are_finite(&b.join("model.onnx"));
 
     let bad = variant(dir.path(), "passes/detect-int8.yaml", "error_budget: 0.1", "error_budget: 0.1, qat: {class_foreground: -1.0}");
-    let out = dir.path().join("refused");
-    let r = cli(&["compile", TINY, "--pipeline", &bad, "--psf", PSF, "-o", out.to_str().unwrap()]);
-    assert_eq!(r.code, 2, "{}", r.stderr);
-    assert!(r.stderr.contains("class_foreground"), "{}", r.stderr);
-    assert!(!out.exists(), "nothing written");
+    let stderr = refused(TINY, &bad, &dir.path().join("refused"), &[]);
+    assert!(stderr.contains("class_foreground"), "{stderr}");
 }
 
 /// Calibration runs frames in parallel and absorbs them in order: any number of workers

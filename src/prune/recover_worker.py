@@ -342,7 +342,8 @@ class Graph(torch.nn.Module):
         # The fused pairs' scale initializers, so that a learned scale reaches them.
         self.fused_scale = {n.output[0]: n.input[1] for n in self.nodes if n.op_type == "QuantizeLinear" and n.output[0] in self.fused}
         group_of = {name: k for k, names in enumerate(scale_groups) for name in names} if trainable else {}
-        self.scales = {}  # learned scale's parameter key -> its group's initializer names
+        self.scales = set()  # parameter keys of learned scales
+        group_key = {}  # scale group -> its parameter key
         self.silu = silu_pairs(g) if fuse else {}
         self.silu_gates = {gate for _, gate in self.silu.values()}
         self.input = [i.name for i in g.input if i.name not in {t.name for t in g.initializer}][0]
@@ -357,14 +358,11 @@ class Graph(torch.nn.Module):
             arr = numpy_helper.to_array(t)
             if t.name in group_of:
                 # One parameter per group, from the group's first initializer met.
-                found = [k for k, names in self.scales.items() if t.name in names]
-                if found:
-                    self.key[t.name] = found[0]
-                    continue
-                k = f"p{len(self.params)}"
-                self.params[k] = torch.nn.Parameter(torch.tensor(float(arr.reshape(())), dtype=torch.float32))
-                self.key[t.name] = k
-                self.scales[k] = set(scale_groups[group_of[t.name]])
+                if group_of[t.name] not in group_key:
+                    k = group_key[group_of[t.name]] = f"p{len(self.params)}"
+                    self.params[k] = torch.nn.Parameter(torch.tensor(float(arr.reshape(())), dtype=torch.float32))
+                    self.scales.add(k)
+                self.key[t.name] = group_key[group_of[t.name]]
             elif only is not None:
                 # Exactly the named float initializers train, whichever op reads them.
                 if trainable and t.name in only and arr.dtype == np.float32:
@@ -460,7 +458,7 @@ class Graph(torch.nn.Module):
                 env[n.output[0]] = F.silu(env[self.silu[n.output[0]][0]])
                 continue
             for o, val in zip(n.output, run_node(n, [self.value(i, env) for i in n.input])):
-                env[o] = self.requantize_bias(o, val, env) if o in self.requant else val
+                env[o] = self.requantize_bias(o, val) if o in self.requant else val
         return [env[w] for w in wanted]
 
     def write_back(self, model):
@@ -498,10 +496,14 @@ class Graph(torch.nn.Module):
                 out[b.output[0]] = (x.input[1], w.input[1])
         return out
 
-    def requantize_bias(self, name, value, env):
-        """A bias (float, from its old integers) on the grid of its input's current scale."""
+    def bias_step(self, name):
+        """The grid of requantized bias `name`: its input's current scale times the weight's."""
         x_scale, w_scale = self.requant[name]
-        step = self.value(x_scale, env) * self.value(w_scale, env)
+        return self.value(x_scale, {}) * self.value(w_scale, {})
+
+    def requantize_bias(self, name, value):
+        """A bias (float, from its old integers) on the grid of its input's current scale."""
+        step = self.bias_step(name)
         return ste_round(value / step).clamp(-INT32_IN_F32, INT32_IN_F32) * step
 
     def requantized_biases(self):
@@ -509,10 +511,10 @@ class Graph(torch.nn.Module):
         dq = {n.output[0]: n for n in self.nodes if n.op_type == "DequantizeLinear"}
         out = {}
         with torch.no_grad():
-            for name, (x_scale, w_scale) in self.requant.items():
+            for name in self.requant:
                 b = dq[name]
                 value = run_node(b, [self.value(i, {}) for i in b.input])[0]
-                step = self.value(x_scale, {}) * self.value(w_scale, {})
+                step = self.bias_step(name)
                 out[b.input[0]] = torch.round(value / step).clamp(-INT32_IN_F32, INT32_IN_F32).cpu().numpy().astype(np.int32)
                 out[b.input[1]] = step.cpu().numpy().astype(np.float32)
         return out
