@@ -244,3 +244,32 @@ fn bad_scenes_are_refused_with_one_line() {
         assert!(!out.join("model.onnx").exists(), "{text}: wrote a model");
     }
 }
+
+/// `inspect --scene` with an ROI measures how much the lossless model's detections inside it
+/// depend on the pixels outside it (each frame's outside swapped with the next frame's): the
+/// tiny model, whose crop stays furthest from it (README), depends on them more than the v8;
+/// and an ROI that is the whole frame leaves nothing to swap, so it agrees exactly.
+#[test]
+fn the_preview_measures_what_the_roi_owes_to_the_outside() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = write(dir.path(), "roi.yaml", "roi: {x: 0, y: 64, w: 256, h: 128}\n");
+    let mut agreement = Vec::new();
+    for m in [MODELS[0], MODELS[2]] {
+        let model = repo().join("models/trained").join(m);
+        let r = cli(&["inspect", model.to_str().unwrap(), "--scene", scene.to_str().unwrap(), "--psf", PSF, "--json"]);
+        assert_eq!(r.code, 0, "{}", r.stderr);
+        let c = &serde_json::from_str::<Value>(&r.stdout).unwrap()["context"];
+        let (a, boxes) = (c["agreement"].as_f64().unwrap(), c["reference_boxes"].as_u64().unwrap());
+        println!("{m}: ROI detections with the outside swapped agree {a:.4} ({boxes} boxes)");
+        assert!(boxes >= 20, "{m}: {c}");
+        assert!((0.0..=1.0).contains(&a), "{m}: {c}");
+        agreement.push(a);
+    }
+    assert!(agreement[0] < 0.98 && agreement[0] < agreement[1], "tiny {} against v8 {}", agreement[0], agreement[1]);
+
+    let out = dir.path().join("tiny");
+    compile(&repo().join("models/trained").join(MODELS[0]), "passes/detect-f32.yaml", None, &out);
+    let whole = pdi_compile::scene::Roi { x: 0, y: 0, w: 256, h: 192 };
+    let c = pdi_compile::scene::context::measure(&load(&out.join("model.onnx")), whole, None, 8, 0, 1).unwrap();
+    assert!(c.reference_boxes > 0 && c.agreement == 1.0, "{c:?}");
+}

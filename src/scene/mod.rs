@@ -12,6 +12,7 @@
 
 pub mod closed_loop;
 pub mod compare;
+pub mod context;
 pub mod geometry;
 pub mod halo;
 pub mod pool;

@@ -3,7 +3,9 @@
 //! The model goes through the lossless compile (detect-f32's passes up to `dce`), then each
 //! scene pass alone and all of them together, on copies; the preview lists MACs, parameters
 //! and outputs of each against the lossless compile. No recovery runs: a crop's accuracy is
-//! measured by `verify` after the compile.
+//! measured by `verify` after the compile. With an ROI, the preview also measures how much the
+//! lossless model's detections inside it depend on what lies outside (`context`), which no
+//! crop sees.
 
 use super::Scene;
 use crate::onnx::proto::ModelProto;
@@ -25,6 +27,7 @@ pub struct Row {
 #[derive(Serialize)]
 pub struct Preview {
     pub rows: Vec<Row>,
+    pub context: Option<super::context::ContextDependence>,
 }
 
 const LOSSLESS: &[&str] = &["promote-constants", "strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce"];
@@ -55,10 +58,11 @@ pub fn preview(model: &ModelProto, scene: &Scene, psf: Option<PathBuf>, calib: O
     }
     if all.len() > 1 {
         let mut m = base.clone();
-        pipeline::run(&recipe(&all), &mut m, &PassContext { scene: Some(scene.clone()), calib, ..Default::default() })?;
+        pipeline::run(&recipe(&all), &mut m, &PassContext { scene: Some(scene.clone()), calib: calib.clone(), ..Default::default() })?;
         rows.push(row("all together", &m, full)?);
     }
-    Ok(Preview { rows })
+    let context = scene.roi.map(|r| super::context::measure(&base, r, calib.as_deref(), super::context::FRAMES, 0, crate::runtime::all_cores())).transpose()?;
+    Ok(Preview { rows, context })
 }
 
 fn row(what: &str, m: &ModelProto, full: pipeline::Counts) -> Result<Row> {
@@ -81,6 +85,12 @@ impl Preview {
         for r in &self.rows {
             let outs: Vec<String> = r.outputs.iter().map(|(n, sh)| format!("{n} {sh:?}")).collect();
             s += &format!("{:<18} {:>14} {:>6.3}× {:>12} {:>6.3}×  {}\n", r.what, r.macs, r.macs_ratio, r.params, r.params_ratio, outs.join(", "));
+        }
+        if let Some(c) = &self.context {
+            s += &format!(
+                "roi context: the full model's detections inside the ROI (>= {} px from its edges; {} boxes on {} frames) agree mAP@.5:.95 {:.3} (@.5 {:.3}) with those on the same frames with everything outside the ROI taken from another frame; a crop never sees the outside, so the lower this is, the more a crop's detections can differ from the full model's\n",
+                c.margin, c.reference_boxes, c.frames, c.agreement, c.agreement50
+            );
         }
         s
     }
