@@ -140,6 +140,10 @@ fn cropping_keeps_gate_maps_and_frame_coordinates() {
         assert_eq!(layout["offset"], serde_json::json!([0.0, 64.0]), "{m}: split-head decode offset");
         let meta: Value = serde_json::from_str(&b.metadata_props.iter().find(|p| p.key == "pdi.scene").unwrap().value).unwrap();
         assert_eq!(meta["roi"]["y"], 64);
+        // The split head has no output the original has: verify says where it is checked instead.
+        let r = cli(&["verify", "--reference", model.to_str().unwrap(), "--candidate", cut.join("model.onnx").to_str().unwrap(), "--psf", PSF, "--random", "1", "--runs", "0"]);
+        assert_eq!(r.code, 2, "{m}: {}", r.stderr);
+        assert!(r.stderr.trim().lines().count() == 1 && r.stderr.contains("rknn-convert"), "{m}: {}", r.stderr);
     }
 }
 

@@ -158,6 +158,12 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
     }
     let reference = side(&req.reference, "reference")?;
     let candidate = side(&req.candidate, "candidate")?;
+    // Before the scene view, which reads the candidate's detection output.
+    let cand_outputs: Vec<String> = candidate.model.graph.as_ref().unwrap().output.iter().map(|o| o.name.clone()).collect();
+    let compared: Vec<String> = reference.model.graph.as_ref().unwrap().output.iter().map(|o| o.name.clone()).filter(|n| cand_outputs.contains(n)).collect();
+    if compared.is_empty() {
+        bail!("the candidate shares no output name with the reference; nothing to compare (a split head from rknn-legalize is checked by rknn-convert, or verify the model compiled without rknn-legalize)");
+    }
     let head = crate::inspect::inspect(&reference.model)?.head;
     let scene = SceneView::new(&candidate.model, head.kind, head.classes.unwrap_or(0), reference.shape)?;
     if scene.is_none() && reference.shape != candidate.shape {
@@ -175,11 +181,6 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
         None => head.clone(),
     };
     let crop = |f: &Frame| -> Result<Frame> { scene.as_ref().map_or(Ok(f.clone()), |s| s.crop(f)) };
-    let cand_outputs: Vec<String> = candidate.model.graph.as_ref().unwrap().output.iter().map(|o| o.name.clone()).collect();
-    let compared: Vec<String> = reference.model.graph.as_ref().unwrap().output.iter().map(|o| o.name.clone()).filter(|n| cand_outputs.contains(n)).collect();
-    if compared.is_empty() {
-        bail!("the candidate shares no output name with the reference; nothing to compare");
-    }
 
     let first_ref = feeds(&reference, &frames[0], psf.as_ref())?;
     let first_cand = feeds(&candidate, &crop(&frames[0])?, psf.as_ref())?;
