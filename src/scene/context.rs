@@ -39,6 +39,9 @@ pub struct ContextDependence {
 /// Measures `model` (lossless, one image input; decodable YOLOv5 or YOLOv8 head) on `n`
 /// frames of `folder` (or simulated ones) for the ROI `roi`.
 pub fn measure(model: &ModelProto, roi: Roi, folder: Option<&Path>, n: usize, seed: u64, threads: usize) -> Result<ContextDependence> {
+    if n < 2 {
+        bail!("the ROI's context dependence swaps the outside between frames: it needs at least 2");
+    }
     let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
     let head = crate::inspect::inspect(model)?.head;
     if head.kind == HeadKind::Raw || head.output.is_none() {
@@ -48,9 +51,6 @@ pub fn measure(model: &ModelProto, roi: Roi, folder: Option<&Path>, n: usize, se
     let margin = levels.iter().map(|l| l.stride).max().unwrap_or(0);
     let graph = Graph::build(g)?;
     let inf = infer(&graph);
-    if n < 2 {
-        bail!("the ROI's context dependence swaps the outside between frames: it needs at least 2");
-    }
     let (feeds, _) = crate::calib_frames::image_feeds(&graph, &inf, folder, n, seed)?;
     let mut rt = runtime::load(Engine::Ort, model, &feeds[0], threads)?;
     let inside = |ds: Vec<crate::detect::Detection>| -> Vec<_> { ds.into_iter().filter(|d| roi.contains(&d.bbox, margin as f32)).collect() };
