@@ -274,6 +274,6 @@ fn the_preview_measures_what_the_roi_owes_to_the_outside() {
     let out = dir.path().join("tiny");
     compile(&repo().join("models/trained").join(MODELS[0]), "passes/detect-f32.yaml", None, &out);
     let whole = pdi_compile::scene::Roi { x: 0, y: 0, w: 256, h: 192 };
-    let c = pdi_compile::scene::context::measure(&load(&out.join("model.onnx")), whole, None, 8, 0, 1).unwrap();
+    let c = pdi_compile::scene::context::measure(&load(&out.join("model.onnx")), whole, None, 8, 0, 1).unwrap().expect("the tiny has a decoded YOLOv5 output");
     assert!(c.reference_boxes > 0 && c.agreement == 1.0, "{c:?}");
 }

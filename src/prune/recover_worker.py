@@ -480,7 +480,7 @@ class Graph(torch.nn.Module):
 
     def requantized_bias_inputs(self):
         """Int32 bias DequantizeLinear outputs whose convolution's input scale is learned, with
-        that input scale's and the weight scale's names. An int32 bias's scale must be its
+        that input scale's and the weight scale's names and the DequantizeLinear node. An int32 bias's scale must be its
         input's scale times the weight's (ONNX Runtime's integer convolution assumes it), so
         such a bias is requantized to the product in every forward (`requantize_bias`), as
         it will be written: the first layer's bias step (the frame's scale times a large
@@ -493,12 +493,12 @@ class Graph(torch.nn.Module):
             x, w, b = (dq[i] for i in n.input[:3])
             ints = self.consts.get(b.input[0]) if b.input[0] not in self.key else self.params[self.key[b.input[0]]]
             if self.key.get(x.input[1]) in self.scales and ints is not None and (b.input[0] in self.key or ints.dtype == torch.int32):
-                out[b.output[0]] = (x.input[1], w.input[1])
+                out[b.output[0]] = (x.input[1], w.input[1], b)
         return out
 
     def bias_step(self, name):
         """The grid of requantized bias `name`: its input's current scale times the weight's."""
-        x_scale, w_scale = self.requant[name]
+        x_scale, w_scale, _ = self.requant[name]
         return self.value(x_scale, {}) * self.value(w_scale, {})
 
     def requantize_bias(self, name, value):
@@ -508,11 +508,9 @@ class Graph(torch.nn.Module):
 
     def requantized_biases(self):
         """The int32 biases and scales `requantize_bias` computed, for `write_back`."""
-        dq = {n.output[0]: n for n in self.nodes if n.op_type == "DequantizeLinear"}
         out = {}
         with torch.no_grad():
-            for name in self.requant:
-                b = dq[name]
+            for name, (_, _, b) in self.requant.items():
                 value = run_node(b, [self.value(i, {}) for i in b.input])[0]
                 step = self.bias_step(name)
                 out[b.input[0]] = torch.round(value / step).clamp(-INT32_IN_F32, INT32_IN_F32).cpu().numpy().astype(np.int32)

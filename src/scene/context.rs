@@ -36,16 +36,16 @@ pub struct ContextDependence {
     pub agreement50: f64,
 }
 
-/// Measures `model` (lossless, one image input; decodable YOLOv5 or YOLOv8 head) on `n`
-/// frames of `folder` (or simulated ones) for the ROI `roi`.
-pub fn measure(model: &ModelProto, roi: Roi, folder: Option<&Path>, n: usize, seed: u64, threads: usize) -> Result<ContextDependence> {
+/// Measures `model` (lossless, one image input) on `n` frames of `folder` (or simulated ones)
+/// for the ROI `roi`; None when it has no decoded YOLOv5 or YOLOv8 output to compare.
+pub fn measure(model: &ModelProto, roi: Roi, folder: Option<&Path>, n: usize, seed: u64, threads: usize) -> Result<Option<ContextDependence>> {
     if n < 2 {
         bail!("the ROI's context dependence swaps the outside between frames: it needs at least 2");
     }
     let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
     let head = crate::inspect::inspect(model)?.head;
     if head.kind == HeadKind::Raw || head.output.is_none() {
-        bail!("the ROI's context dependence needs a decoded YOLOv5 or YOLOv8 detection output");
+        return Ok(None);
     }
     let (_, _, levels) = super::geometry::levels(g)?;
     let margin = levels.iter().map(|l| l.stride).max().unwrap_or(0);
@@ -64,7 +64,7 @@ pub fn measure(model: &ModelProto, roi: Roi, folder: Option<&Path>, n: usize, se
     let classes = head.classes.unwrap_or(1).max(1);
     let (truth, _) = agreement_truth(&own, classes);
     let m = coco_map(&truth, &swapped, classes);
-    Ok(ContextDependence { frames: feeds.len(), reference_boxes: truth.iter().map(Vec::len).sum(), margin, agreement: m.map50_95, agreement50: m.map50 })
+    Ok(Some(ContextDependence { frames: feeds.len(), reference_boxes: truth.iter().map(Vec::len).sum(), margin, agreement: m.map50_95, agreement50: m.map50 }))
 }
 
 /// `t` ([N, C, H, W]) with every pixel outside `roi` taken from `other`.

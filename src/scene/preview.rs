@@ -61,15 +61,13 @@ pub fn preview(model: &ModelProto, scene: &Scene, psf: Option<PathBuf>, calib: O
         pipeline::run(&recipe(&all), &mut m, &PassContext { scene: Some(scene.clone()), calib: calib.clone(), ..Default::default() })?;
         rows.push(row("all together", &m, full)?);
     }
-    let head = crate::inspect::inspect(&base)?.head;
     let context = match scene.roi {
-        Some(r) if head.kind != crate::analysis::head::HeadKind::Raw && head.output.is_some() => Some(super::context::measure(&base, r, calib.as_deref(), super::context::FRAMES, 0, crate::runtime::all_cores())?),
-        Some(_) => {
-            crate::warn::warn("inspect: the ROI's context dependence is not measured: the model has no decoded YOLOv5 or YOLOv8 detection output");
-            None
-        }
+        Some(r) => super::context::measure(&base, r, calib.as_deref(), super::context::FRAMES, 0, crate::runtime::all_cores())?,
         None => None,
     };
+    if scene.roi.is_some() && context.is_none() {
+        crate::warn::warn("inspect: the ROI's context dependence is not measured: the model has no decoded YOLOv5 or YOLOv8 detection output");
+    }
     Ok(Preview { rows, context })
 }
 
