@@ -136,6 +136,19 @@ pub enum Command {
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },
+    /// Compile again from a folder's manifest.yaml into a new folder and compare: identical
+    /// bytes on the host that built it (exit 1 if not); elsewhere the two models by `verify`.
+    Rebuild {
+        /// A folder `compile` wrote.
+        dir: PathBuf,
+        #[arg(short = 'o', long = "out")]
+        out: PathBuf,
+        /// Frames for the comparison by verify (simulated when not given).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        #[arg(long)]
+        json: bool,
+    },
     /// Compare a compiled candidate with its reference on ORT and tract; exit 1 if a gate fails.
     Verify {
         /// The original model (run on ONNX Runtime).
@@ -172,6 +185,10 @@ pub enum Command {
         /// Also write the gate's checks as JUnit XML (one testcase per check) to this file.
         #[arg(long)]
         junit: Option<PathBuf>,
+        /// Gate keys that may go unmeasured (e.g. max_map_drop on frames without labels);
+        /// any other unmeasured threshold fails the gate.
+        #[arg(long, value_delimiter = ',')]
+        allow_unmeasured: Vec<String>,
     },
     /// Compile and measure every variant (unpruned/pruned × f32/fp16/int8 × ORT/tract, and the
     /// original): DIR/bench.md and .json (Pareto front marked), DIR/bench.svg and .png.
@@ -197,11 +214,11 @@ pub enum Command {
         /// Measure the FP16 variants on tract also where tract emulates f16 (x86_64: slow).
         #[arg(long)]
         tract_fp16: bool,
-        /// Total time budget of the pruned variants' recovery by distillation, shared among the
-        /// recipe's recover passes (default: the recipe's, 19 minutes); a shorter one trains on
-        /// proportionally fewer of the recipe's frames, at least 512.
+        /// Total optimizer steps of the recovery by distillation, shared among the recipe's
+        /// recover passes (default: the recipe's); fewer steps train on proportionally fewer of
+        /// the recipe's frames, at least 512.
         #[arg(long)]
-        recover_minutes: Option<f64>,
+        recover_steps: Option<usize>,
         /// Threads for ONNX Runtime and tract alike (default: every core).
         #[arg(long)]
         threads: Option<usize>,
@@ -227,11 +244,11 @@ pub enum Command {
         /// Simulated frames to check on when no --data is given.
         #[arg(long, default_value_t = 16)]
         frames: usize,
-        /// Total time budget of the recovery by distillation, shared among the recipe's recover
-        /// passes (default: the recipe's, 19 minutes); a shorter one trains on proportionally
-        /// fewer of the recipe's frames, at least 512.
+        /// Total optimizer steps of the recovery by distillation, shared among the recipe's
+        /// recover passes (default: the recipe's); fewer steps train on proportionally fewer of
+        /// the recipe's frames, at least 512.
         #[arg(long)]
-        recover_minutes: Option<f64>,
+        recover_steps: Option<usize>,
         /// Timed runs per model and engine.
         #[arg(long, default_value_t = 20)]
         runs: usize,
@@ -270,6 +287,9 @@ pub enum Command {
         /// Also write the gate's checks as JUnit XML to this file.
         #[arg(long)]
         junit: Option<PathBuf>,
+        /// Gate keys that may go unmeasured (e.g. max_saturation when no candidate is INT8).
+        #[arg(long, value_delimiter = ',')]
+        allow_unmeasured: Vec<String>,
         #[arg(long, default_value_t = 0)]
         seed: u64,
         #[arg(short = 'o', long = "out")]
@@ -367,7 +387,7 @@ pub fn run(cli: Cli) -> Result<u8> {
         }
         Command::Compile { model, pipeline, out, psf, keep_outputs, calib, external_data, scene, target, threads, json } => {
             let scene = scene.as_deref().map(crate::scene::Scene::load).transpose()?;
-            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib, keep_outputs, scene, ..Default::default() }, target, threads: threads_or_all(threads)? };
+            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib, keep_outputs, scene, ..Default::default() }, target, threads: threads_or_all(threads)?, decisions: None };
             let r = compile(&req)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);
@@ -380,6 +400,20 @@ pub fn run(cli: Cli) -> Result<u8> {
                 if !r.warnings.is_empty() {
                     println!("  {} warning(s), on stderr above and in report.json", r.warnings.len());
                 }
+            }
+        }
+        Command::Rebuild { dir, out, data, json } => {
+            if out == dir {
+                anyhow::bail!("rebuild writes a new folder to compare with {}: give another -o", dir.display());
+            }
+            let r = crate::rebuild::rebuild(&crate::rebuild::RebuildRequest { dir, out, data })?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r)?);
+            } else {
+                print!("{}", r.render());
+            }
+            if !r.passed {
+                return Ok(EXIT_GATE_FAILED);
             }
         }
         Command::Psf { command } => psf_command(command)?,
@@ -399,7 +433,8 @@ pub fn run(cli: Cli) -> Result<u8> {
             let (w, h) = pair(&size, "--size")?;
             let noise = noise_model(q, sigma, crate::optics::degrade::FULL_SCALE_14BIT)?;
             let set = crate::optics::psf_set::PsfSet::load(&psf)?;
-            crate::fsutil::ensure_dir(&out)?;
+            let (shown, staged) = (out.clone(), crate::fsutil::StagedDir::new(&out)?);
+            let out = staged.path().to_path_buf();
             let clean = out.join("clean");
             let boxes = match &from {
                 Some(dir) => crate::dataset::import_folder(dir, &clean, w, h, coco.as_deref())?,
@@ -412,10 +447,14 @@ pub fn run(cli: Cli) -> Result<u8> {
             }
             let summary = serde_json::json!({ "source": from.as_ref().map_or("synthetic".to_string(), |p| p.display().to_string()), "size": [w, h], "out_size": out_size, "min_box": min_box, "labelled_objects": boxes, "psf": psf.display().to_string(), "degrade": s, "seed": seed });
             crate::fsutil::write_atomic(&out.join("dataset.yaml"), yaml_serde::to_string(&summary)?.as_bytes())?;
-            println!("dataset {}: {} frames, {boxes} objects; degraded PSNR {:.2} dB", out.display(), s.frames, s.psnr_db);
+            staged.commit()?;
+            println!("dataset {}: {} frames, {boxes} objects; degraded PSNR {:.2} dB", shown.display(), s.frames, s.psnr_db);
         }
-        Command::Verify { reference, candidate, data, random, psf, gate, runs, no_tract, threads, seed, json, junit } => {
-            let gate = gate.map(|g| crate::verify::gate::Gate::load(&g)).transpose()?;
+        Command::Verify { reference, candidate, data, random, psf, gate, runs, no_tract, threads, seed, json, junit, allow_unmeasured } => {
+            if gate.is_none() && !allow_unmeasured.is_empty() {
+                anyhow::bail!("--allow-unmeasured names checks of a gate; give --gate FILE too");
+            }
+            let gate = gate.map(|g| crate::verify::gate::Gate::load(&g, allow_unmeasured)).transpose()?;
             if junit.is_some() && gate.is_none() {
                 anyhow::bail!("--junit reports the gate's checks; give --gate FILE too (e.g. passes/gate.yaml)");
             }
@@ -435,8 +474,8 @@ pub fn run(cli: Cli) -> Result<u8> {
                 return Ok(EXIT_GATE_FAILED);
             }
         }
-        Command::Bench { model, out, psf, calib, data, frames, runs, tract_fp16, recover_minutes, threads, json } => {
-            let r = crate::bench::bench(&crate::bench::BenchRequest { model, out: out.clone(), psf, calib, data, frames, runs, tract_fp16, recover_minutes, threads: threads_or_all(threads)? })?;
+        Command::Bench { model, out, psf, calib, data, frames, runs, tract_fp16, recover_steps, threads, json } => {
+            let r = crate::bench::bench(&crate::bench::BenchRequest { model, out: out.clone(), psf, calib, data, frames, runs, tract_fp16, recover_steps, threads: threads_or_all(threads)? })?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);
             } else {
@@ -444,22 +483,25 @@ pub fn run(cli: Cli) -> Result<u8> {
                 println!("wrote {}", crate::bench::out_files(&out));
             }
         }
-        Command::Ship { model, out, psf, calib, data, frames, recover_minutes, runs, threads, json } => {
+        Command::Ship { model, out, psf, calib, data, frames, recover_steps, runs, threads, json } => {
             if runs == 0 || frames == 0 {
                 anyhow::bail!("--runs and --frames must be at least 1");
             }
-            let r = crate::ship::ship(&crate::ship::ShipRequest { model, out, psf, calib, data, frames, recover_minutes, runs, threads: threads_or_all(threads)? })?;
+            let r = crate::ship::ship(&crate::ship::ShipRequest { model, out, psf, calib, data, frames, recover_steps, runs, threads: threads_or_all(threads)? })?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);
             } else {
                 print!("{}", r.render());
             }
         }
-        Command::Stress { reference, candidates, psf, data, conditions, frames, gate, junit, seed, out, json } => {
+        Command::Stress { reference, candidates, psf, data, conditions, frames, gate, junit, allow_unmeasured, seed, out, json } => {
             if frames.is_some_and(|n| n == 0 || n > 4096) {
                 anyhow::bail!("--frames must be in 1..4096");
             }
-            let gate = gate.map(|g| crate::stress::gate::StressGate::load(&g)).transpose()?;
+            if gate.is_none() && !allow_unmeasured.is_empty() {
+                anyhow::bail!("--allow-unmeasured names checks of a gate; give --gate FILE too");
+            }
+            let gate = gate.map(|g| crate::stress::gate::StressGate::load(&g, allow_unmeasured)).transpose()?;
             if junit.is_some() && gate.is_none() {
                 anyhow::bail!("--junit reports the gate's checks; give --gate FILE too");
             }

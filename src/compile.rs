@@ -5,12 +5,13 @@
 //! DIR/manifest.yaml   input hash, pipeline, tool version, target: what made this folder
 //! DIR/tract.yaml      (--target tract) tract's load/run times and agreement with ORT;
 //!                     DIR/model.nnef.tar beside it when that loads faster
-//! Every file is written to a temp name and renamed, so a failed compile leaves no half file.
+//! The folder is built under a temporary sibling name and moved into place whole: a failed
+//! compile leaves no folder (or the previous one as it was), and a folder is never merged.
 
-use crate::fsutil::{ensure_dir, write_atomic};
+use crate::fsutil::{write_atomic, StagedDir};
 use crate::onnx;
 use crate::pipeline::{self, PassContext, PassReport, Recipe};
-use anyhow::Result;
+use anyhow::{Context, Result};
 use serde::Serialize;
 use sha2::{Digest, Sha256};
 use std::path::{Path, PathBuf};
@@ -30,6 +31,8 @@ pub struct CompileRequest {
     pub target: crate::targets::Target,
     /// Threads of the target check's timed runs (tract and ONNX Runtime alike).
     pub threads: usize,
+    /// The tract target's timed choices from an earlier build (`rebuild`); None: time them.
+    pub decisions: Option<crate::targets::tract::Decisions>,
 }
 
 #[derive(Serialize)]
@@ -44,6 +47,9 @@ pub struct CompileReport {
     pub passes: Vec<PassReport>,
     /// Every warning of the compile (also printed on stderr as it happened).
     pub warnings: Vec<String>,
+    /// Why a rebuild could give other bytes (a training the time cap stopped); empty: the
+    /// same input, recipe, thread counts and machine give the same model.
+    pub not_reproducible: Vec<String>,
     pub millis: f64,
     pub output: String,
     pub target: crate::targets::Target,
@@ -53,8 +59,16 @@ pub struct CompileReport {
 }
 
 pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
+    compile_recipe(req, Recipe::load(&req.pipeline)?)
+}
+
+/// `compile` with the recipe given (`rebuild` gives the manifest's, options resolved).
+pub fn compile_recipe(req: &CompileRequest, recipe: Recipe) -> Result<CompileReport> {
     let t = Instant::now();
-    let mut recipe = Recipe::load(&req.pipeline)?;
+    if req.out_dir.exists() && !req.out_dir.is_dir() {
+        anyhow::bail!("output path {} exists and is not a folder; pick another -o", req.out_dir.display());
+    }
+    let mut recipe = recipe;
     if let Some(scene) = &req.context.scene {
         recipe = recipe.with_scene(scene)?;
     }
@@ -65,6 +79,8 @@ pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
         crate::warn::warn(w.clone());
     }
     let mut model = loaded.model;
+    // The whole recipe, before any pass runs: options, order, what the command line supplies.
+    pipeline::check(&recipe, &model, &req.context).with_context(|| format!("pipeline {}", req.pipeline.display()))?;
     // The tract target weighs INT8 against the float model it came from: keep that one.
     let split = match req.target {
         crate::targets::Target::Tract => recipe.passes.iter().position(|p| p.name == "quantize").unwrap_or(recipe.passes.len()),
@@ -90,23 +106,25 @@ pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
     };
     let after = passes.last().map_or(before, |p| p.after);
 
-    ensure_dir(&req.out_dir)?;
-    // The target check runs first: a model the target cannot take leaves no model.onnx behind.
+    let staged = StagedDir::new(&req.out_dir)?;
+    let dir = staged.path();
     let target_check = match req.target {
         crate::targets::Target::Onnx => None,
         crate::targets::Target::Tract => {
-            let (artifact, chosen) = crate::targets::tract::write(&req.out_dir, model, float, req.threads)?;
+            let (artifact, chosen) = crate::targets::tract::write(dir, model, float, req.threads, req.decisions.as_ref())?;
             model = chosen;
             Some(serde_json::to_value(artifact)?)
         }
-        crate::targets::Target::Rknn => Some(serde_json::to_value(crate::targets::rknn::write(&req.out_dir, &model, req.context.calib.as_deref())?)?),
+        crate::targets::Target::Rknn => Some(serde_json::to_value(crate::targets::rknn::write(dir, &model, req.context.calib.as_deref())?)?),
     };
     let out_model = req.out_dir.join("model.onnx");
+    let staged_model = dir.join("model.onnx");
     if req.external_data {
-        onnx::io::save_with_external_data(&model, &out_model, EXTERNAL_THRESHOLD)?;
+        onnx::io::save_with_external_data(&model, &staged_model, EXTERNAL_THRESHOLD)?;
     } else {
-        onnx::save(&model, &out_model)?;
+        onnx::save(&model, &staged_model)?;
     }
+    let unrepeatable: Vec<String> = passes.iter().flat_map(|p| crate::manifest::not_reproducible(&p.details).into_iter().map(|w| format!("{}: {w}", p.pass))).collect();
     let report = CompileReport {
         tool_version: env!("CARGO_PKG_VERSION"),
         input: req.model.display().to_string(),
@@ -117,42 +135,47 @@ pub fn compile(req: &CompileRequest) -> Result<CompileReport> {
         after,
         passes,
         warnings: crate::warn::take(),
+        not_reproducible: unrepeatable,
         millis: t.elapsed().as_secs_f64() * 1e3,
         output: out_model.display().to_string(),
         target: req.target,
         target_check,
     };
-    write_atomic(&req.out_dir.join("report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
-    write_atomic(&req.out_dir.join("manifest.yaml"), manifest(&report, &out_model)?.as_bytes())?;
+    write_atomic(&dir.join("report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    write_atomic(&dir.join("manifest.yaml"), manifest(req, &report, &staged_model)?.as_bytes())?;
+    staged.commit()?;
     Ok(report)
 }
 
-fn manifest(r: &CompileReport, model: &Path) -> Result<String> {
-    #[derive(Serialize)]
-    struct Manifest<'a> {
-        tool: &'static str,
-        tool_version: &'a str,
-        input: &'a str,
-        input_sha256: &'a str,
-        model: &'static str,
-        model_sha256: String,
-        pipeline: &'a Recipe,
-        passes: &'a [PassReport],
-        target: crate::targets::Target,
-        #[serde(skip_serializing_if = "Option::is_none")]
-        target_check: Option<&'a serde_json::Value>,
-    }
+fn manifest(req: &CompileRequest, r: &CompileReport, model: &Path) -> Result<String> {
+    use crate::manifest::{Hashed, Host, Inputs, Manifest, Versions};
+    let training = crate::manifest::trainings(&r.passes);
+    let cx = &req.context;
     let m = Manifest {
-        tool: "pdi-compile",
-        tool_version: r.tool_version,
-        input: &r.input,
-        input_sha256: &r.input_sha256,
-        model: "model.onnx",
-        model_sha256: hex(&Sha256::digest(std::fs::read(model)?)),
-        pipeline: &r.pipeline,
-        passes: &r.passes,
+        tool: "pdi-compile".into(),
+        tool_version: r.tool_version.into(),
+        input: r.input.clone(),
+        input_sha256: r.input_sha256.clone(),
+        model: "model.onnx".into(),
+        model_sha256: crate::manifest::sha256_file(model)?,
+        pipeline: pipeline::resolve(&r.pipeline)?,
+        pipeline_file: r.pipeline_file.clone(),
+        inputs: Inputs {
+            psf: cx.psf.as_deref().map(Hashed::of).transpose()?,
+            calib: cx.calib.as_deref().map(Hashed::of).transpose()?,
+            keep_outputs: cx.keep_outputs.clone(),
+            scene: cx.scene.clone(),
+        },
         target: r.target,
-        target_check: r.target_check.as_ref(),
+        threads: req.threads,
+        external_data: req.external_data,
+        host: Host::this(),
+        versions: Versions::of(&training),
+        training,
+        reproducible: r.not_reproducible.is_empty(),
+        not_reproducible: r.not_reproducible.clone(),
+        passes: r.passes.iter().map(serde_json::to_value).collect::<Result<_, _>>()?,
+        target_check: r.target_check.clone(),
     };
     Ok(yaml_serde::to_string(&m)?)
 }

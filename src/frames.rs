@@ -44,6 +44,15 @@ pub fn load_folder(dir: &Path, height: usize, width: usize) -> Result<Vec<Frame>
     Ok(frames)
 }
 
+/// How many frames `dir` holds (image files by name; none are decoded): what a recipe check
+/// can afford before any pass runs.
+pub fn count(dir: &Path) -> Result<usize> {
+    if !dir.is_dir() {
+        bail!("no such folder");
+    }
+    Ok(crate::dataset::image_files(dir)?.len())
+}
+
 struct Gray {
     w: usize,
     h: usize,

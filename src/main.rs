@@ -1,8 +1,10 @@
 use clap::Parser;
 use std::process::ExitCode;
 
-/// Exit code for bad input and failures; 1 is reserved for "ran fine, gate failed".
+/// Exit code for bad input and failures; 1 is reserved for "ran fine, quality not met".
 const EXIT_ERROR: u8 = 2;
+/// A compile whose result is past a lossy pass's hard limit: nothing was written.
+const EXIT_QUALITY: u8 = 1;
 
 fn main() -> ExitCode {
     let cli = pdi_compile::cli::Cli::parse();
@@ -12,7 +14,8 @@ fn main() -> ExitCode {
         Ok(Ok(code)) => ExitCode::from(code),
         Ok(Err(e)) => {
             eprintln!("error: {}", format!("{e:#}").replace('\n', " "));
-            ExitCode::from(EXIT_ERROR)
+            // A model past a pass's hard limit is a quality failure, like a failed gate.
+            ExitCode::from(if pdi_compile::pipeline::is_quality_failure(&e) { EXIT_QUALITY } else { EXIT_ERROR })
         }
         Err(p) => {
             let msg = p.downcast_ref::<String>().cloned().or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string())).unwrap_or_default();

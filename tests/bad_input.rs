@@ -36,7 +36,8 @@ fn model(nodes: Vec<NodeProto>, inputs: Vec<ValueInfoProto>, outputs: &[&str], i
 
 fn expect_clean_error(file: &Path, needle: &str) {
     let out_dir = file.with_extension("out");
-    for args in [vec!["inspect", file.to_str().unwrap()], vec!["compile", file.to_str().unwrap(), "--pipeline", "passes/identity.yaml", "-o", out_dir.to_str().unwrap()]] {
+    let f = file.to_str().unwrap();
+    for args in [vec!["inspect", f], vec!["compile", f, "--pipeline", "passes/identity.yaml", "-o", out_dir.to_str().unwrap()], vec!["verify", "--reference", f, "--candidate", f, "--random", "1", "--runs", "0"]] {
         let r = cli(&args);
         assert_eq!(r.code, 2, "{args:?}: exit {} stderr {}", r.code, r.stderr);
         let lines: Vec<&str> = r.stderr.lines().collect();
@@ -72,6 +73,10 @@ fn malformed_models_fail_cleanly() {
 
     let absurd = model(vec![node("Relu", &["x"], &["y"])], vec![f32_input("x", &[1, 3, 1 << 40, 8])], &["y"], vec![]);
     expect_clean_error(&write("absurd.onnx", &absurd.encode_to_vec()), "absurd dimension");
+
+    // Each dimension plausible, their product not: refused before a frame is allocated.
+    let huge = model(vec![node("Relu", &["x"], &["y"])], vec![f32_input("x", &[1, 1, 1 << 30, 1 << 30])], &["y"], vec![]);
+    expect_clean_error(&write("huge.onnx", &huge.encode_to_vec()), "elements");
 
     let lying = TensorProto { name: "w".into(), dims: vec![1 << 20, 1 << 20], data_type: 1, raw_data: vec![0; 16], ..Default::default() };
     let lies = model(vec![node("Add", &["x", "w"], &["y"])], vec![x()], &["y"], vec![lying]);
@@ -263,9 +268,10 @@ fn a_three_channel_input_is_fed_replicated_frames() {
 fn bad_qat_settings_are_refused_before_calibration() {
     let dir = tempfile::tempdir().unwrap();
     let qat = std::fs::read_to_string(repo().join("passes/detect-int8-qat.yaml")).unwrap();
-    for (setting, needle) in [("{minutes: 0}", "qat needs minutes > 0"), ("{lr: .nan}", "qat needs minutes > 0"), ("{batch: 0}", "batch > 0"), ("{steps: 3}", "unknown field `steps`")] {
+    assert!(qat.contains("qat: {steps: 800}"), "the recipe's qat line moved; update this test");
+    for (setting, needle) in [("{minutes: 0}", "minutes (a time cap) must be a positive number"), ("{lr: .nan}", "qat: lr must be a positive number"), ("{batch: 0}", "steps and batch must be at least 1"), ("{epochs: 3}", "unknown field `epochs`")] {
         let recipe = dir.path().join("qat.yaml");
-        std::fs::write(&recipe, qat.replace("qat: {minutes: 5}", &format!("qat: {setting}"))).unwrap();
+        std::fs::write(&recipe, qat.replace("qat: {steps: 800}", &format!("qat: {setting}"))).unwrap();
         let out = dir.path().join("out");
         let r = cli(&["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap()]);
         assert_eq!(r.code, 2, "{setting}: {}", r.stderr);
@@ -281,12 +287,13 @@ fn bad_rknn_qat_settings_and_placement_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let qat = std::fs::read_to_string(repo().join("passes/detect-rknn-qat.yaml")).unwrap();
     let misplaced = qat.replace("  - rknn-legalize\n", "");
+    assert!(qat.contains("rknn-qat: {steps: 800}") && misplaced != qat, "the recipe's lines moved; update this test");
     for (recipe_text, needle) in [
-        (qat.replace("rknn-qat: {minutes: 5}", "rknn-qat: {minutes: 0}"), "minutes and lr must be positive"),
-        (qat.replace("rknn-qat: {minutes: 5}", "rknn-qat: {frames: 4}"), "4 frames for batches of 8"),
-        (qat.replace("rknn-qat: {minutes: 5}", "rknn-qat: {steps: 3}"), "unknown field `steps`"),
-        (misplaced, "needs a model from rknn-legalize"),
-        (qat.replace("rknn-qat: {minutes: 5}", "rknn-hybrid: {fp16: [/no/such/Conv]}"), "'/no/such/Conv', which is not a node"),
+        (qat.replace("rknn-qat: {steps: 800}", "rknn-qat: {steps: 0}"), "steps and batch must be at least 1"),
+        (qat.replace("rknn-qat: {steps: 800}", "rknn-qat: {frames: 4}"), "4 frames for batches of 8"),
+        (qat.replace("rknn-qat: {steps: 800}", "rknn-qat: {epochs: 3}"), "unknown field `epochs`"),
+        (misplaced, "put rknn-legalize before it"),
+        (qat.replace("rknn-qat: {steps: 800}", "rknn-hybrid: {fp16: [/no/such/Conv]}"), "'/no/such/Conv', which is not a node"),
     ] {
         let recipe = dir.path().join("qat.yaml");
         std::fs::write(&recipe, &recipe_text).unwrap();
@@ -296,4 +303,81 @@ fn bad_rknn_qat_settings_and_placement_are_refused() {
         assert!(r.stderr.contains(needle) && r.stderr.trim().lines().count() == 1, "{needle}: {}", r.stderr);
         assert!(!out.join("model.onnx").exists(), "{needle}: nothing written");
     }
+}
+
+/// A recipe is checked whole before any pass runs: each mistake exits 2 within 2 s with one
+/// line naming the recipe's line, and no output folder appears.
+#[test]
+fn malformed_recipes_are_refused_before_any_pass_runs() {
+    let dir = tempfile::tempdir().unwrap();
+    let lossless = "  - promote-constants\n  - strip-recon\n  - bind-psf\n  - fold-constants\n  - fold-psf-gates\n  - fold-bn\n  - dce\n";
+    let prune = "  - prune: {ratio: 0.5}\n";
+    let cases: Vec<(&str, String, Vec<&str>, &str)> = vec![
+        ("recover without prune", format!("{lossless}  - recover: {{steps: 10}}\n"), vec![], "line 10: recover: needs teacher"),
+        ("rknn-qat without rknn-legalize", format!("{lossless}  - rknn-qat: {{steps: 10}}\n"), vec![], "needs split-head"),
+        ("qat from the original without prune", format!("{lossless}  - quantize: {{qat: {{teacher: original}}}}\n"), vec![], "needs teacher"),
+        ("an unknown option in the last pass", format!("{lossless}{prune}  - recover: {{steps: 10}}\n  - cleanup\n  - quantize: {{calib_frame: 8}}\n"), vec![], "line 13: quantize: options of pass quantize: unknown field `calib_frame`"),
+        ("a negative step count", format!("{lossless}{prune}  - recover: {{steps: -5}}\n"), vec![], "line 11: recover"),
+        ("a missing --calib folder", format!("{lossless}{prune}"), vec!["--calib", "/no/such/frames"], "--calib /no/such/frames: no such folder"),
+        ("an unknown pass", format!("{lossless}  - fold-everything\n"), vec![], "unknown pass 'fold-everything'"),
+        ("warm-up longer than the steps", format!("{lossless}{prune}  - recover: {{steps: 10, warmup: 10}}\n"), vec![], "warmup (10) must be fewer than steps (10)"),
+        ("rknn-hybrid without rknn-legalize", format!("{lossless}  - rknn-hybrid\n"), vec![], "put rknn-legalize before it"),
+        ("a time cap of zero minutes", format!("{lossless}{prune}  - recover: {{steps: 10, minutes: 0}}\n"), vec![], "minutes (a time cap) must be a positive number"),
+        ("a qat lr of zero", format!("{lossless}  - quantize: {{qat: {{lr: 0}}}}\n"), vec![], "qat: lr must be a positive number"),
+        ("a missing --psf file", format!("{lossless}"), vec!["--psf", "/no/such/psf.npy"], "/no/such/psf.npy"),
+    ];
+    for (what, passes, extra, needle) in cases {
+        let recipe = dir.path().join("bad.yaml");
+        std::fs::write(&recipe, format!("name: bad\npasses:\n{passes}")).unwrap();
+        let out = dir.path().join("out");
+        let mut args = vec!["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "-o", out.to_str().unwrap()];
+        if !extra.contains(&"--psf") {
+            args.extend(["--psf", "calib/single_lwir_blur.npy"]);
+        }
+        args.extend(extra);
+        let t = std::time::Instant::now();
+        let r = cli(&args);
+        let seconds = t.elapsed().as_secs_f64();
+        assert_eq!(r.code, 2, "{what}: {}", r.stderr);
+        assert!(r.stderr.contains(needle) && r.stderr.trim().lines().count() == 1, "{what}: {:?} should name {needle:?}", r.stderr);
+        assert!(seconds < 2.0, "{what}: refused after {seconds:.2} s");
+        assert!(!out.exists(), "{what}: no output folder");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1, "{what}: nothing beside the recipe");
+    }
+}
+
+/// A compile killed with SIGKILL leaves an existing output folder as it was, and makes no
+/// folder at a new path; the next compile removes the temporary sibling it left.
+#[test]
+fn a_killed_compile_leaves_the_folder_as_it_was() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let args = |out: &Path, recipe: &str| -> Vec<String> {
+        ["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe, "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap()].iter().map(|s| s.to_string()).collect()
+    };
+    let r = cli(&args(&out, "passes/detect-f32.yaml").iter().map(String::as_str).collect::<Vec<_>>());
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let listing = |d: &Path| -> Vec<(String, Vec<u8>)> {
+        let mut v: Vec<(String, Vec<u8>)> = std::fs::read_dir(d).unwrap().flatten().map(|e| (e.file_name().to_string_lossy().into_owned(), std::fs::read(e.path()).unwrap())).collect();
+        v.sort();
+        v
+    };
+    let before = listing(&out);
+    let fresh = dir.path().join("fresh");
+    for target in [&out, &fresh] {
+        // Pruning measures sensitivities for seconds before anything is written.
+        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_pdi-compile")).args(args(target, "passes/detect-pruned-f32-norecover.yaml")).current_dir(repo()).stderr(std::process::Stdio::null()).spawn().unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(1500));
+        assert!(child.try_wait().unwrap().is_none(), "the compile ended before it could be killed");
+        child.kill().unwrap(); // SIGKILL
+        child.wait().unwrap();
+    }
+    assert!(listing(&out) == before, "the killed compile changed the existing folder");
+    assert!(!fresh.exists(), "a folder appeared at the new path");
+    // The next compile into the same place replaces the folder whole and leaves no sibling.
+    let r = cli(&args(&out, "passes/identity.yaml").iter().map(String::as_str).collect::<Vec<_>>());
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let names: Vec<String> = std::fs::read_dir(dir.path()).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+    assert!(names.iter().all(|n| !n.contains("pdi-partial") || n.contains("fresh")), "{names:?}");
+    assert!(!out.join("tract.yaml").exists() && out.join("model.onnx").exists());
 }

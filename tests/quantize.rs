@@ -369,9 +369,9 @@ fn quantization_aware_recovery_trains_the_emitted_integers() {
 fn plain_and_qat(dir: &Path, more: &str) -> (std::path::PathBuf, std::path::PathBuf, serde_json::Value) {
     let fast = variant(dir, "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 32");
     let plain = variant(dir, &fast, "error_budget: 0.1", "error_budget: 10.0");
-    // The epochs end it (about 15 s on 2 idle cores); the minutes only bound a loaded machine,
+    // The steps end it (about 15 s on 2 idle cores); the minutes only cap a loaded machine,
     // where 2 of them once left 11 of its 24 steps.
-    let qat = variant(dir, &plain, "error_budget: 10.0", &format!("error_budget: 10.0, qat: {{minutes: 10, epochs: 4, lr: 2.0e-3, batch: 8, frames: 48{more}}}"));
+    let qat = variant(dir, &plain, "error_budget: 10.0", &format!("error_budget: 10.0, qat: {{steps: 24, minutes: 10, lr: 2.0e-3, batch: 8, frames: 48{more}}}"));
     let (a, b) = (dir.join("plain"), dir.join("qat"));
     compile(TINY, &plain, &a, &[]);
     let r = compile(TINY, &qat, &b, &[])["qat"].clone();
@@ -399,7 +399,7 @@ fn reproduces_fake_quant(qat: &serde_json::Value) {
 fn quantization_aware_recovery_can_distill_from_the_unpruned_model() {
     let dir = tempfile::tempdir().unwrap();
     let quantize = "calib_frames: 64, bias_correction: true, error_budget: 0.1";
-    let qat = "calib_frames: 32, bias_correction: true, error_budget: 10.0, qat: {teacher: original, minutes: 10, epochs: 4, lr: 2.0e-3, batch: 8, frames: 48}";
+    let qat = "calib_frames: 32, bias_correction: true, error_budget: 10.0, qat: {teacher: original, steps: 24, minutes: 10, lr: 2.0e-3, batch: 8, frames: 48}";
     let pruned = variant(dir.path(), "passes/detect-pruned-int8-norecover.yaml", quantize, qat);
     let r = compile(TINY, &pruned, &dir.path().join("qat"), &[])["qat"].clone();
     println!("{}", serde_json::to_string_pretty(&r).unwrap());
@@ -492,4 +492,33 @@ fn range_collection_is_the_same_on_any_number_of_workers() {
         assert_eq!((&h.counts, h.radius, h.min, h.max, h.count), (&o.counts, o.radius, o.min, o.max, o.count), "{v}");
     }
     assert_eq!(one.channel_means, three.channel_means);
+}
+
+/// Past the hard limit the INT8 model is broken, not less accurate: exit 1, the worst output
+/// groups and layers named, no folder written. Within the limit, a missed error budget is a
+/// warning in words.
+#[test]
+fn int8_past_its_hard_limit_fails_and_a_missed_budget_warns() {
+    let dir = tempfile::tempdir().unwrap();
+    let fast = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 8, analysis_frames: 2, held_out_frames: 4");
+    // No INT8 model of this detector is within 1e-4 of float: the limit is past.
+    let broken = variant(dir.path(), &fast, "error_budget: 0.1", "hard_limit: {max_rel_l2: 1.0e-4}");
+    let out = dir.path().join("broken");
+    let r = run_compile(TINY, &broken, &out, &[]);
+    assert_eq!(r.code, 1, "{}", r.stderr);
+    let line = r.stderr.lines().last().unwrap();
+    assert!(line.starts_with("error: ") && line.contains("INT8 broke the model") && line.contains("rel L2") && line.contains("worst layers:"), "{}", r.stderr);
+    assert!(!out.exists(), "no artifact under the ordinary name");
+    // A budget below what INT8 reaches, the limit left at its default: built, with a warning.
+    let tight = variant(dir.path(), &fast, "error_budget: 0.1", "error_budget: 1.0e-4, max_float_layers: 1");
+    let out = dir.path().join("tight");
+    let r = run_compile(TINY, &tight, &out, &[]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    assert!(r.stderr.contains("INT8 missed its error budget") && r.stderr.contains("its detections will move"), "{}", r.stderr);
+    assert!(out.join("model.onnx").exists());
+    // A budget beyond the limit cannot be aimed at: refused when the recipe loads.
+    let wrong = variant(dir.path(), &fast, "error_budget: 0.1", "error_budget: 2.0");
+    let r = run_compile(TINY, &wrong, &dir.path().join("wrong"), &[]);
+    assert_eq!(r.code, 2, "{}", r.stderr);
+    assert!(r.stderr.contains("beyond hard_limit"), "{}", r.stderr);
 }

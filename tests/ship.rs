@@ -8,7 +8,7 @@ use common::*;
 fn ship_writes_every_artifact_and_one_screen() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("ship");
-    let r = cli(&["ship", "models/trained/pdinet_v5_tiny_trained.onnx", "--psf", "calib/single_lwir_blur.npy", "--frames", "4", "--recover-minutes", "0.1", "--runs", "2", "-o", out.to_str().unwrap()]);
+    let r = cli(&["ship", "models/trained/pdinet_v5_tiny_trained.onnx", "--psf", "calib/single_lwir_blur.npy", "--frames", "4", "--recover-steps", "20", "--runs", "2", "-o", out.to_str().unwrap()]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     for f in ["f32/model.onnx", "f32/tract.yaml", "pruned-f32/model.onnx", "pruned-f32/tract.yaml", "pruned-int8/model.onnx", "rknn/model.onnx", "rknn/rknn.yaml", "rknn/dataset.txt", "ship.json"] {
         assert!(out.join(f).is_file(), "{f} written");

@@ -188,7 +188,7 @@ fn rknn_qat_trains_on_the_toolkits_plan_and_reaches_the_npu() {
     let plain = dir.path().join("plain");
     let r = compile("models/trained/pdinet_v5_tiny_trained.onnx", "passes/detect-rknn.yaml", &plain, &["--target", "rknn"]);
     assert_eq!(r.code, 0, "{}", r.stderr);
-    let recipe = detect_rknn_then(dir.path(), "rknn-qat: {minutes: 2, epochs: 4, lr: 0.0005, frames: 32}");
+    let recipe = detect_rknn_then(dir.path(), "rknn-qat: {steps: 16, minutes: 2, lr: 0.0005, frames: 32}");
     let out = dir.path().join("qat");
     let r = compile("models/trained/pdinet_v5_tiny_trained.onnx", recipe.to_str().unwrap(), &out, &["--target", "rknn"]);
     assert_eq!(r.code, 0, "{}", r.stderr);

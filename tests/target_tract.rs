@@ -47,7 +47,37 @@ fn tract_target_writes_a_checked_folder() {
             assert_eq!(shipped.graph.as_ref().unwrap().node.iter().any(|n| n.name == concat), chosen, "{f}");
         }
         assert!(std::fs::read_to_string(out.join("manifest.yaml")).unwrap().contains("target: tract"));
+
+        // A rebuild from the manifest reuses the timed choices (tiles, NNEF) instead of
+        // timing again, and gives the same bytes on this machine.
+        let again = dir.path().join(format!("{}-rebuilt", out.file_name().unwrap().to_str().unwrap()));
+        let r = cli(&["rebuild", out.to_str().unwrap(), "-o", again.to_str().unwrap(), "--json"]);
+        assert_eq!(r.code, 0, "{}\n{}", r.stdout, r.stderr);
+        let rebuilt: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+        assert_eq!(rebuilt["identical"], true, "{rebuilt}");
+        assert!(rebuilt["compared_by"].as_str().unwrap().starts_with("bytes"), "{rebuilt}");
+        assert_eq!(std::fs::read(out.join("model.onnx")).unwrap(), std::fs::read(again.join("model.onnx")).unwrap());
+        assert_eq!(out.join("model.nnef.tar").is_file(), again.join("model.nnef.tar").is_file(), "the NNEF choice is reused");
     }
+}
+
+/// A rebuild refuses, in one line, an input that changed since the build.
+#[test]
+fn a_rebuild_refuses_a_changed_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("model.onnx");
+    std::fs::copy(repo().join("models/fixtures/pdinet_v8_input_op17_nofold.onnx"), &model).unwrap();
+    let out = dir.path().join("out");
+    let r = cli(&["compile", model.to_str().unwrap(), "--pipeline", "passes/detect-f32.yaml", "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap()]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let mut bytes = std::fs::read(&model).unwrap();
+    bytes.extend_from_slice(b"\0");
+    std::fs::write(&model, bytes).unwrap();
+    let again = dir.path().join("again");
+    let r = cli(&["rebuild", out.to_str().unwrap(), "-o", again.to_str().unwrap()]);
+    assert_eq!(r.code, 2, "{}", r.stderr);
+    assert!(r.stderr.contains("changed since") && r.stderr.trim().lines().count() == 1, "{}", r.stderr);
+    assert!(!again.exists());
 }
 
 #[test]

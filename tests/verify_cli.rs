@@ -34,10 +34,28 @@ fn verify(reference: &Path, candidate: &Path, extra: &[&str]) -> CliResult {
 fn lossless_compile_passes_the_gate() {
     let dir = tempfile::tempdir().unwrap();
     let (reference, candidate) = compiled(dir.path(), "pdinet_v8_input_op17_nofold.onnx");
+    // Synthetic frames carry no labels: the drop against labels cannot be measured, and the
+    // gate says so instead of passing it.
     let r = verify(&reference, &candidate, &[]);
+    assert_eq!(r.code, 1, "{}\n{}", r.stdout, r.stderr);
+    let j: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    let unmeasured: Vec<&serde_json::Value> = j["checks"].as_array().unwrap().iter().filter(|c| c["value"].is_null()).collect();
+    assert_eq!(unmeasured.len(), 1, "{}", j["checks"]);
+    assert_eq!((unmeasured[0]["key"].as_str(), unmeasured[0]["passed"].as_bool()), (Some("max_map_drop"), Some(false)));
+    assert!(unmeasured[0]["unmeasured"].as_str().unwrap().contains("no labels"), "{}", unmeasured[0]);
+    let screen = cli(&["verify", "--reference", reference.to_str().unwrap(), "--candidate", candidate.to_str().unwrap(), "--psf", "calib/radial_6x8.npy", "--gate", accuracy_gate(dir.path()).to_str().unwrap(), "--random", "1", "--runs", "0"]);
+    assert_eq!(screen.code, 1);
+    assert!(screen.stdout.contains("[FAIL: not measured] mAP@.5:.95 drop against labels") && screen.stdout.contains("--allow-unmeasured max_map_drop"), "{}", screen.stdout);
+    // Named, it passes, and says it was allowed.
+    let r = verify(&reference, &candidate, &["--allow-unmeasured", "max_map_drop"]);
     assert_eq!(r.code, 0, "{}\n{}", r.stdout, r.stderr);
     let j: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
     assert_eq!(j["passed"], true);
+    assert!(j["checks"].as_array().unwrap().iter().any(|c| c["key"] == "max_map_drop" && c["allowed"] == true), "{}", j["checks"]);
+    // A misspelt key allows nothing: refused.
+    let r = verify(&reference, &candidate, &["--allow-unmeasured", "max_map_dorp"]);
+    assert_eq!(r.code, 2, "{}", r.stderr);
+    assert!(r.stderr.contains("not a gate key"), "{}", r.stderr);
     let out = &j["outputs"][0];
     assert_eq!(out["name"], "detections");
     let groups: Vec<&str> = out["groups"].as_array().unwrap().iter().map(|g| g["group"].as_str().unwrap()).collect();
@@ -62,11 +80,12 @@ fn a_perturbed_candidate_fails_with_exit_1() {
     let bad = dir.path().join("perturbed.onnx");
     pdi_compile::onnx::save(&m, &bad).unwrap();
     let junit = dir.path().join("gate-junit.xml");
-    let r = verify(&reference, &bad, &["--no-tract", "--junit", junit.to_str().unwrap()]);
+    let r = verify(&reference, &bad, &["--no-tract", "--junit", junit.to_str().unwrap(), "--allow-unmeasured", "max_map_drop,max_rel_l2_tract"]);
     assert_eq!(r.code, 1, "{}\n{}", r.stdout, r.stderr);
     // The JUnit report names the failed checks for CI dashboards.
     let xml = std::fs::read_to_string(&junit).unwrap();
     assert!(xml.contains("<failure message=") && xml.contains("rel L2"), "{xml}");
+    assert!(xml.contains("<skipped message=\"not measured (tract was not run (--no-tract))"), "{xml}");
     let j: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
     let failed: Vec<&str> = j["checks"].as_array().unwrap().iter().filter(|c| c["passed"] == false).map(|c| c["name"].as_str().unwrap()).collect();
     assert!(failed.iter().any(|n| n.contains("rel L2")), "{failed:?}");

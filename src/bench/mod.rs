@@ -20,7 +20,7 @@
 pub mod plot;
 
 use crate::compile::{compile, CompileRequest};
-use crate::fsutil::{ensure_dir, write_atomic};
+use crate::fsutil::{ensure_dir, write_atomic, StagedDir};
 use crate::pipeline::{PassContext, Recipe};
 use crate::runtime::{self, Engine, Runtime};
 use crate::tensor::Tensor;
@@ -48,7 +48,7 @@ pub struct BenchRequest {
     /// Measure FP16 variants on tract even where it emulates f16.
     pub tract_fp16: bool,
     /// Time budget of the pruned variants' recovery (the recipe's when None).
-    pub recover_minutes: Option<f64>,
+    pub recover_steps: Option<usize>,
     /// Threads of every timed session, ORT and tract alike.
     pub threads: usize,
 }
@@ -79,6 +79,10 @@ pub struct BenchReport {
     pub rows: Vec<Row>,
     /// Variant/engine pairs not measured, and why.
     pub not_measured: Vec<String>,
+    /// Variants whose compile ended past a lossy pass's hard limit (no artifact), and why.
+    pub failed: Vec<String>,
+    /// What a variant missed within its limits (an error budget), in words.
+    pub notes: Vec<String>,
     /// Seconds per compile, by variant.
     pub compile_seconds: Vec<(String, f64)>,
     pub seconds: f64,
@@ -92,27 +96,29 @@ pub(crate) fn last_pass_of(text: &str, name: &str) -> Result<String> {
     Recipe { name: name.into(), description: format!("the last pass of {}", r.name), passes: vec![last] }.to_yaml()
 }
 
-/// `text` with its recovery's total time budget set to `minutes` (unchanged when None),
-/// shared among its `recover` passes in the recipe's own proportions (a recipe that prunes
-/// in stages recovers after each). A pass that names its frames and is given fewer minutes
-/// than its own trains on proportionally fewer, never fewer than the pass's default (nor more
-/// than it asked for): a recipe's frame count is sized for its own minutes, a recovery of a
-/// tenth of them sees a tenth of the frames, and drawing the rest cost 26 s of a 2-minute
-/// demo on 2 cores.
-pub(crate) fn with_recover_minutes(text: &str, minutes: Option<f64>) -> Result<String> {
-    let Some(minutes) = minutes else { return Ok(text.to_string()) };
+/// `text` with its recovery's total step budget set to `steps` (unchanged when None), shared
+/// among its `recover` passes in the recipe's own proportions (a recipe that prunes in stages
+/// recovers after each). A pass that names its frames and is given fewer steps than its own
+/// trains on proportionally fewer, never fewer than the pass's default (nor more than it asked
+/// for): a recipe's frame count is sized for its own steps, a recovery of a tenth of them sees
+/// a tenth of the frames, and drawing the rest cost 26 s of a 2-minute demo on 2 cores.
+pub(crate) fn with_recover_steps(text: &str, steps: Option<usize>) -> Result<String> {
+    let Some(steps) = steps else { return Ok(text.to_string()) };
+    if steps == 0 {
+        anyhow::bail!("--recover-steps must be at least 1");
+    }
     let mut r = Recipe::parse(text)?;
     let defaults = crate::passes::recover::Options::default();
-    let own = |p: &crate::pipeline::recipe::PassSpec| p.options.get("minutes").and_then(|m| m.as_f64()).unwrap_or(defaults.minutes);
-    let total: f64 = r.passes.iter().filter(|p| p.name == "recover").map(own).sum::<f64>().max(f64::MIN_POSITIVE);
+    let own = |p: &crate::pipeline::recipe::PassSpec| p.options.get("steps").and_then(|m| m.as_u64()).unwrap_or(defaults.steps as u64) as f64;
+    let total: f64 = r.passes.iter().filter(|p| p.name == "recover").map(own).sum::<f64>().max(1.0);
     for p in r.passes.iter_mut().filter(|p| p.name == "recover") {
-        let share = minutes * own(p) / total;
+        let share = (steps as f64 * own(p) / total).round().max(1.0);
         let asked = p.options.get("frames").and_then(|f| f.as_u64());
         let mut m = match &p.options {
             yaml_serde::Value::Mapping(m) => m.clone(),
             _ => yaml_serde::Mapping::new(),
         };
-        m.insert("minutes".into(), share.into());
+        m.insert("steps".into(), (share as u64).into());
         if let Some(asked) = asked {
             let fewer = (asked as f64 * share / own(p)).max(defaults.frames as f64).min(asked as f64).round() as u64;
             m.insert("frames".into(), fewer.into());
@@ -127,7 +133,10 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
     if req.frames == 0 || req.runs == 0 {
         anyhow::bail!("--frames and --runs must be at least 1");
     }
-    let recipes = req.out.join("recipes");
+    // Built whole beside --out and moved into place at the end (an earlier folder replaced).
+    let staged = StagedDir::new(&req.out)?;
+    let root = staged.path().to_path_buf();
+    let recipes = root.join("recipes");
     ensure_dir(&recipes)?;
     let write_recipe = |name: &str, text: &str| -> Result<PathBuf> {
         let p = recipes.join(format!("{name}.yaml"));
@@ -139,19 +148,24 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
     let stages = [
         ("f32", None, write_recipe("f32", DETECT_F32)?),
         ("pruned-norecover-f32", None, write_recipe("pruned-norecover-f32", DETECT_PRUNED_F32_NORECOVER)?),
-        ("pruned-f32", None, write_recipe("pruned-f32", &with_recover_minutes(DETECT_PRUNED_F32, req.recover_minutes)?)?),
+        ("pruned-f32", None, write_recipe("pruned-f32", &with_recover_steps(DETECT_PRUNED_F32, req.recover_steps)?)?),
         ("fp16", Some("f32"), fp16.clone()),
         ("int8", Some("f32"), int8.clone()),
         ("pruned-fp16", Some("pruned-f32"), fp16),
         ("pruned-int8", Some("pruned-f32"), int8),
     ];
-    let variant_dir = |v: &str| req.out.join("variants").join(v);
+    let variant_dir = |v: &str| root.join("variants").join(v);
     let mut compile_seconds = Vec::new();
+    let (mut failed, mut notes): (Vec<(String, String)>, Vec<String>) = (Vec::new(), Vec::new());
     for (name, from, recipe) in &stages {
+        if let Some(f) = from.filter(|f| failed.iter().any(|(n, _)| n == f)) {
+            failed.push((name.to_string(), format!("its source variant {f} failed")));
+            continue;
+        }
         eprintln!("bench: compiling {name}");
         let model = from.map_or_else(|| req.model.clone(), |f| variant_dir(f).join("model.onnx"));
         let c = Instant::now();
-        compile(&CompileRequest {
+        let compiled = compile(&CompileRequest {
             model,
             pipeline: recipe.clone(),
             out_dir: variant_dir(name),
@@ -159,8 +173,17 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
             context: PassContext { psf: req.psf.clone(), calib: req.calib.clone(), keep_outputs: None, ..Default::default() },
             target: crate::targets::Target::Onnx,
             threads: req.threads,
-        })
-        .map_err(|e| anyhow!("compiling the {name} variant: {e:#}"))?;
+            decisions: None,
+        });
+        match compiled {
+            Ok(r) => notes.extend(r.warnings.iter().filter(|w| w.contains("missed its error budget")).map(|w| format!("{name}: {w}"))),
+            Err(e) if crate::pipeline::is_quality_failure(&e) => {
+                eprintln!("bench: {name} failed: {e:#}");
+                failed.push((name.to_string(), format!("{e:#}")));
+                continue;
+            }
+            Err(e) => return Err(anyhow!("compiling the {name} variant: {e:#}")),
+        }
         compile_seconds.push((name.to_string(), c.elapsed().as_secs_f64()));
     }
 
@@ -169,7 +192,7 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
     let mut rows = Vec::new();
     let mut not_measured = Vec::new();
     let mut timed: Vec<(String, Engine, PathBuf)> = Vec::new();
-    for (name, _, _) in &stages {
+    for (name, _, _) in stages.iter().filter(|(n, _, _)| !failed.iter().any(|(f, _)| f == n)) {
         let tract = !name.ends_with("fp16") || TRACT_NATIVE_F16 || req.tract_fp16;
         if !tract {
             not_measured.push(format!("{name} on tract: tract emulates f16 arithmetic on {} (pass --tract-fp16 to measure it anyway)", std::env::consts::ARCH));
@@ -215,16 +238,19 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
         threads: req.threads,
         rows,
         not_measured,
+        failed: failed.into_iter().map(|(n, why)| format!("{n}: {why}")).collect(),
+        notes,
         compile_seconds,
         seconds: 0.0,
     };
     let svg = plot::svg(&report.rows, &report.model);
     let png = plot::png(&report.rows, &report.model)?;
     let report = BenchReport { seconds: t.elapsed().as_secs_f64(), ..report };
-    write_atomic(&req.out.join("bench.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
-    write_atomic(&req.out.join("bench.md"), report.markdown().as_bytes())?;
-    write_atomic(&req.out.join("bench.svg"), svg.as_bytes())?;
-    write_atomic(&req.out.join("bench.png"), &png)?;
+    write_atomic(&root.join("bench.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    write_atomic(&root.join("bench.md"), report.markdown().as_bytes())?;
+    write_atomic(&root.join("bench.svg"), svg.as_bytes())?;
+    write_atomic(&root.join("bench.png"), &png)?;
+    staged.commit()?;
     Ok(report)
 }
 
@@ -293,6 +319,12 @@ impl BenchReport {
         for n in &self.not_measured {
             s += &format!("\nNot measured: {n}.");
         }
+        for f in &self.failed {
+            s += &format!("\nFAILED, no artifact: {f}.");
+        }
+        for n in &self.notes {
+            s += &format!("\nNote: {n}.");
+        }
         s += "\n\nCompile seconds: ";
         s += &self.compile_seconds.iter().map(|(v, t)| format!("{v} {t:.1}")).collect::<Vec<_>>().join(", ");
         s += &format!("; total {:.0} s.\n", self.seconds);
@@ -310,20 +342,21 @@ mod tests {
     use super::*;
 
     #[test]
-    fn recover_minutes_are_shared_in_the_recipes_proportions() {
-        let text = "name: t\npasses:\n  - prune: {ratio: 0.5}\n  - recover: {minutes: 6, epochs: 300, frames: 2048}\n  - prune: {ratio: 0.5}\n  - recover\n";
-        let r = Recipe::parse(&with_recover_minutes(text, Some(2.1)).unwrap()).unwrap();
-        let minutes: Vec<f64> = r.passes.iter().filter(|p| p.name == "recover").map(|p| p.options.get("minutes").unwrap().as_f64().unwrap()).collect();
-        // 6 and the default 15 minutes: 2.1 shared 6:15.
-        assert!((minutes[0] - 0.6).abs() < 1e-9 && (minutes[1] - 1.5).abs() < 1e-9, "{minutes:?}");
-        assert_eq!(r.passes[1].options.get("epochs").unwrap().as_u64(), Some(300));
-        // A tenth of its minutes: a tenth of 2048 frames, held at 512; the default stays unset.
+    fn recover_steps_are_shared_in_the_recipes_proportions() {
+        let text = "name: t\npasses:\n  - prune: {ratio: 0.5}\n  - recover: {steps: 600, lr: 0.002, frames: 2048}\n  - prune: {ratio: 0.5}\n  - recover\n";
+        let r = Recipe::parse(&with_recover_steps(text, Some(160)).unwrap()).unwrap();
+        let steps: Vec<u64> = r.passes.iter().filter(|p| p.name == "recover").map(|p| p.options.get("steps").unwrap().as_u64().unwrap()).collect();
+        // 600 and the default 1000 steps: 160 shared 600:1000.
+        assert_eq!(steps, [60, 100]);
+        assert_eq!(r.passes[1].options.get("lr").unwrap().as_f64(), Some(0.002));
+        // A tenth of its steps: a tenth of 2048 frames, held at 512; the default stays unset.
         assert_eq!(r.passes[1].options.get("frames").unwrap().as_u64(), Some(512));
         assert!(r.passes[3].options.get("frames").is_none());
-        let longer = Recipe::parse(&with_recover_minutes(text, Some(42.0)).unwrap()).unwrap();
+        let longer = Recipe::parse(&with_recover_steps(text, Some(16000)).unwrap()).unwrap();
         assert_eq!(longer.passes[1].options.get("frames").unwrap().as_u64(), Some(2048));
-        let half = Recipe::parse(&with_recover_minutes("name: t\npasses:\n  - recover: {minutes: 19, frames: 2048}\n", Some(9.5)).unwrap()).unwrap();
+        let half = Recipe::parse(&with_recover_steps("name: t\npasses:\n  - recover: {steps: 8000, frames: 2048}\n", Some(4000)).unwrap()).unwrap();
         assert_eq!(half.passes[0].options.get("frames").unwrap().as_u64(), Some(1024));
-        assert_eq!(with_recover_minutes(text, None).unwrap(), text);
+        assert_eq!(with_recover_steps(text, None).unwrap(), text);
+        assert!(with_recover_steps(text, Some(0)).is_err());
     }
 }

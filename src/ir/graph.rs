@@ -10,6 +10,11 @@ use std::collections::{HashMap, VecDeque};
 /// not a camera frame (2^31 is also where 32-bit index arithmetic in runtimes breaks).
 pub const MAX_DIM: i64 = 1 << 31;
 
+/// Largest element count we accept in a declared value (inputs, outputs, value infos): 2^28
+/// (1 GiB of f32), some 90 times a 3-channel 4K frame. A bigger one is a corrupt or hostile
+/// file, refused before any frame, feed or output buffer of that size is allocated.
+pub const MAX_VALUE_ELEMENTS: i64 = 1 << 28;
+
 pub struct Graph<'m> {
     pub proto: &'m GraphProto,
     /// Value name -> index of the node that produces it.
@@ -155,6 +160,15 @@ fn check_declared_shape(v: &ValueInfoProto) -> Result<()> {
                 bail!("value '{}' declares an absurd dimension ({x} > 2^31): corrupt file?", v.name);
             }
         }
+    }
+    let dims: Vec<i64> = t.shape.iter().flat_map(|s| &s.dim).filter_map(|d| match d.value {
+        Some(DimensionValue::DimValue(x)) => Some(x),
+        _ => None,
+    }).collect();
+    // Saturating: 2^30 x 2^30 must not wrap around into a small count.
+    let n = dims.iter().fold(1i64, |a, &x| a.saturating_mul(x));
+    if n > MAX_VALUE_ELEMENTS {
+        bail!("value '{}' declares {dims:?}, over {MAX_VALUE_ELEMENTS} elements (1 GiB of f32): corrupt file?", v.name);
     }
     Ok(())
 }

@@ -15,7 +15,7 @@ use crate::pipeline::{Pass, PassContext};
 use crate::tensor::Tensor;
 use anyhow::{bail, Result};
 
-#[derive(serde::Deserialize, Default)]
+#[derive(serde::Serialize, serde::Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 pub struct Options {
     /// Blur map file; `--psf` on the command line takes precedence.
@@ -30,6 +30,22 @@ pub struct BindPsf {
 impl Pass for BindPsf {
     fn name(&self) -> &'static str {
         "bind-psf"
+    }
+
+    /// A blur map that is a graph input needs `--psf`; a given map must load.
+    fn preflight(&self, input: &ModelProto, cx: &PassContext) -> Result<()> {
+        let Some(g) = input.graph.as_ref() else { return Ok(()) };
+        let graph = Graph::build(g)?;
+        let inf = infer(&graph);
+        let image = partition::image_input(&graph, &inf);
+        let maps = bridge::find(&graph, &inf, image.as_deref()).blur_maps;
+        match cx.psf.as_ref().or(self.options.psf.as_ref()) {
+            None => match maps.iter().find(|m| m.source == "input") {
+                Some(m) => bail!("the blur map '{}' is a graph input: give the camera's calibration with --psf FILE (.npy or .yaml)", m.name),
+                None => Ok(()),
+            },
+            Some(file) => BlurMap::load(file).map(|_| ()),
+        }
     }
 
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {

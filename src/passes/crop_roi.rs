@@ -36,7 +36,7 @@ use anyhow::{bail, Result};
 /// Past a few rows the fit has many times the weights of the rows it estimates.
 const MAX_HALO_ROWS: usize = 4;
 
-#[derive(serde::Deserialize)]
+#[derive(serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Options {
     pub halo: Mode,
@@ -76,6 +76,10 @@ pub struct CropRoi {
 impl Pass for CropRoi {
     fn name(&self) -> &'static str {
         "crop-roi"
+    }
+
+    fn provides(&self) -> Vec<crate::pipeline::Capability> {
+        vec![crate::pipeline::Capability::Teacher]
     }
 
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {

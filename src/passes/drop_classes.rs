@@ -31,6 +31,10 @@ impl Pass for DropClasses {
         "drop-classes"
     }
 
+    fn provides(&self) -> Vec<crate::pipeline::Capability> {
+        vec![crate::pipeline::Capability::Teacher]
+    }
+
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
         let Some(scene) = cx.scene.as_ref().filter(|s| s.classes.is_some()) else {
             return Ok(serde_json::json!({ "skipped": "the scene names no classes" }));

@@ -34,7 +34,7 @@ use crate::scene::{Roi, SceneMeta};
 use crate::tensor::Tensor;
 use anyhow::{anyhow, bail, Result};
 
-#[derive(serde::Deserialize)]
+#[derive(serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Options {
     /// YOLOv5's anchor-matching ratio in training (hyp `anchor_t`).

@@ -21,7 +21,7 @@ use crate::tensor::Tensor;
 use anyhow::Result;
 use std::collections::HashSet;
 
-#[derive(serde::Deserialize)]
+#[derive(serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Options {
     /// Turn BNs without a conv before them into Mul + Add.

@@ -19,7 +19,7 @@ use std::collections::{HashMap, HashSet};
 /// Ops whose output differs from run to run: never folded.
 const NONDETERMINISTIC: &[&str] = &["RandomUniform", "RandomNormal", "RandomUniformLike", "RandomNormalLike", "Multinomial", "Bernoulli"];
 
-#[derive(serde::Deserialize)]
+#[derive(serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Options {
     /// Values larger than this stay computed at run time: folding must not bloat the file.

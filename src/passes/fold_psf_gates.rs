@@ -22,7 +22,7 @@ use crate::tensor::Tensor;
 use anyhow::Result;
 use std::collections::HashSet;
 
-#[derive(serde::Deserialize)]
+#[derive(serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Options {
     /// A gate whose values all lie within this of each other is treated as uniform. 1e-7 is

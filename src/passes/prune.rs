@@ -32,7 +32,7 @@ use crate::tensor::Tensor;
 use anyhow::{anyhow, bail, Result};
 use std::collections::HashMap;
 
-#[derive(serde::Deserialize)]
+#[derive(serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Options {
     /// Fraction of each group's channels removed.
@@ -86,6 +86,10 @@ const COMPENSATION_PIXELS: usize = 1 << 20;
 impl Pass for Prune {
     fn name(&self) -> &'static str {
         "prune"
+    }
+
+    fn provides(&self) -> Vec<crate::pipeline::Capability> {
+        vec![crate::pipeline::Capability::Teacher]
     }
 
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {

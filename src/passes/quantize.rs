@@ -30,7 +30,7 @@ use crate::quant::range::{choose, Method};
 use anyhow::{anyhow, bail, Result};
 use std::collections::{BTreeSet, HashMap, HashSet};
 
-#[derive(serde::Deserialize)]
+#[derive(serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Options {
     pub method: Method,
@@ -77,16 +77,39 @@ pub struct Options {
     /// Quantization-aware recovery after emission (and mixed precision): the emitted model's
     /// integers trained on the calibration frames to match the float model. None: off.
     pub qat: Option<Qat>,
+    /// Past these, on the held-out frames against float, the INT8 model is broken rather than
+    /// less accurate: the compile fails (exit 1) and writes no artifact.
+    pub hard_limit: HardLimit,
+}
+
+/// The hard limit of a lossy result: any output group's rel L2 above `max_rel_l2` or cosine
+/// below `min_cosine` against float. A rel L2 of 1 is an output as far from float as zeros
+/// are; a cosine of 0.9 is boxes and scores pointing elsewhere. The error budget aims well
+/// inside them (0.1 in the shipped recipes).
+#[derive(serde::Deserialize, serde::Serialize, Clone, Copy, Debug)]
+#[serde(deny_unknown_fields, default)]
+pub struct HardLimit {
+    pub max_rel_l2: f64,
+    pub min_cosine: f64,
+}
+
+impl Default for HardLimit {
+    fn default() -> Self {
+        HardLimit { max_rel_l2: 1.0, min_cosine: 0.9 }
+    }
 }
 
 /// Quantization-aware recovery's schedule (`qat: {minutes: 5}`).
-#[derive(serde::Deserialize)]
+#[derive(serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Qat {
-    /// Time budget; the cosine schedule shortens to fit it.
-    pub minutes: f64,
-    /// Passes over the calibration frames, when the budget allows.
-    pub epochs: usize,
+    /// Optimizer steps: the cosine schedule follows them.
+    pub steps: usize,
+    /// A cap on the training's wall time (none by default); when it bites the report says so
+    /// and the artifact is marked not reproducible.
+    pub minutes: Option<f64>,
+    /// Training threads, fixed; 0: every core of the compiling machine (recorded).
+    pub threads: usize,
     /// Adam's step as a fraction of each tensor's largest magnitude: 1e-4 moves a 7-bit
     /// weight about 0.006 of a grid step per iteration, so a few hundred steps can move it
     /// one or two steps and no further.
@@ -118,7 +141,7 @@ pub struct Qat {
     pub class_foreground: Option<f64>,
 }
 
-#[derive(serde::Deserialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
+#[derive(serde::Serialize, serde::Deserialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
 #[serde(rename_all = "lowercase")]
 pub enum QatTeacher {
     #[default]
@@ -128,7 +151,7 @@ pub enum QatTeacher {
 
 impl Default for Qat {
     fn default() -> Self {
-        Qat { minutes: 5.0, epochs: 100, lr: 1e-4, batch: 8, frames: 0, device: String::new(), teacher: QatTeacher::Float, scales: false, scale_lr: 1.0, box_edges: None, class_foreground: None }
+        Qat { steps: 800, minutes: None, threads: 0, lr: 1e-4, batch: 8, frames: 0, device: String::new(), teacher: QatTeacher::Float, scales: false, scale_lr: 1.0, box_edges: None, class_foreground: None }
     }
 }
 
@@ -144,6 +167,38 @@ pub enum Rounding {
 pub enum Format {
     Qdq,
     Qlinear,
+}
+
+impl Options {
+    /// The ranges, checked when the recipe loads (calibration and QAT take minutes).
+    pub fn check(&self) -> Result<()> {
+        if !(2..=8).contains(&self.weight_bits) {
+            bail!("weight_bits {} must be between 2 and 8", self.weight_bits);
+        }
+        if !(50.0..=100.0).contains(&self.percentile) {
+            bail!("percentile {} must be between 50 and 100", self.percentile);
+        }
+        if self.error_budget.is_some_and(|b| !(b > 0.0 && b.is_finite())) {
+            bail!("error_budget must be a positive number");
+        }
+        let HardLimit { max_rel_l2, min_cosine } = self.hard_limit;
+        if !(max_rel_l2 > 0.0 && max_rel_l2.is_finite()) || !(-1.0..=1.0).contains(&min_cosine) {
+            bail!("hard_limit needs max_rel_l2 > 0 and min_cosine in [-1, 1]");
+        }
+        if self.error_budget.is_some_and(|b| b > max_rel_l2) {
+            bail!("error_budget {} is beyond hard_limit's max_rel_l2 {max_rel_l2}: the budget must aim inside the limit", self.error_budget.unwrap_or_default());
+        }
+        if let Some(q) = &self.qat {
+            crate::prune::recover::check_schedule("qat", q.steps, q.minutes, q.lr, q.batch)?;
+            if !(q.scale_lr > 0.0 && q.scale_lr.is_finite()) {
+                bail!("qat: scale_lr must be a positive number");
+            }
+            if [q.box_edges, q.class_foreground].iter().flatten().any(|w| !(*w >= 0.0 && w.is_finite())) {
+                bail!("qat's box_edges and class_foreground must be finite and 0 or more");
+            }
+        }
+        Ok(())
+    }
 }
 
 impl Default for Options {
@@ -168,6 +223,7 @@ impl Default for Options {
             rounding_iterations: 400,
             rounding_frames: 16,
             qat: None,
+            hard_limit: HardLimit::default(),
         }
     }
 }
@@ -192,21 +248,20 @@ impl Pass for Quantize {
         "quantize"
     }
 
+    fn check(&self) -> Result<()> {
+        self.options.check()
+    }
+
+    fn needs(&self) -> Vec<crate::pipeline::Capability> {
+        match &self.options.qat {
+            Some(q) if q.teacher == QatTeacher::Original => vec![crate::pipeline::Capability::Teacher],
+            _ => Vec::new(),
+        }
+    }
+
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
-        if !(2..=8).contains(&o.weight_bits) {
-            bail!("weight_bits {} must be between 2 and 8", o.weight_bits);
-        }
-        if !(50.0..=100.0).contains(&o.percentile) {
-            bail!("percentile {} must be between 50 and 100", o.percentile);
-        }
-        // Checked before calibration, which takes seconds to minutes; `!(x > 0)` refuses NaN too.
-        if o.qat.as_ref().is_some_and(|q| !(q.minutes > 0.0) || !(q.lr > 0.0) || !(q.scale_lr > 0.0) || q.batch == 0 || q.epochs == 0) {
-            bail!("qat needs minutes > 0, lr > 0, batch > 0, epochs > 0 and scale_lr > 0");
-        }
-        if o.qat.as_ref().is_some_and(|q| [q.box_edges, q.class_foreground].iter().flatten().any(|w| !(*w >= 0.0 && w.is_finite()))) {
-            bail!("qat's box_edges and class_foreground must be finite and 0 or more");
-        }
+        o.check()?;
         let original = match &o.qat {
             Some(q) if q.teacher == QatTeacher::Original => Some(original_teacher(cx)?),
             _ => None,
@@ -279,7 +334,6 @@ impl Pass for Quantize {
             Some(budget) => mixed_precision(&MixedPrecision { float: &float, quantized: &quantized, graph: &graph, keep: &keep, layers: &alone.layers, frames: &analysis, threads, budget, max_layers: o.max_float_layers }, &emit_with)?,
             None => Mixed { names: keep.clone(), ..Mixed::default() },
         };
-        warnings.extend(mixed.warning.clone());
         let (current, (quantized, emitted)) = match mixed.chosen {
             Some(chosen) => chosen,
             None => (base.clone(), (quantized, emitted)),
@@ -322,6 +376,18 @@ impl Pass for Quantize {
             Some(errors) => errors,
             None => attribution::output_errors(&float, &quantized, &held_out, threads, None)?,
         };
+        check_hard_limit(&outputs, &layers, held_out.len(), o.hard_limit)?;
+        if let Some(budget) = o.error_budget {
+            let worst = worst_rel_l2(&outputs);
+            if worst > budget {
+                warnings.push(format!(
+                    "INT8 missed its error budget: its worst output group is rel L2 {worst:.3} from float on {} held-out frames (budget {budget}, hard limit {}), so its detections will move; calibrate on frames like the deployment's (--calib), raise max_float_layers ({}), or add qat to get closer",
+                    held_out.len(),
+                    o.hard_limit.max_rel_l2,
+                    o.max_float_layers
+                ));
+            }
+        }
         let mut stressed = Vec::new();
         for c in &conditions {
             let frames: Vec<Vec<(String, crate::tensor::Tensor)>> = held_out.iter().enumerate().map(|(i, f)| f.iter().map(|(n, t)| (n.clone(), c.apply_tensor(t, o.seed ^ (i as u64 + 1) << 20))).collect()).collect();
@@ -356,7 +422,8 @@ impl Pass for Quantize {
             "emitted": emitted,
             "warnings": warnings,
             "ort_optimized_ops": ort_ops,
-            "mixed_precision": { "error_budget": o.error_budget, "kept_float": mixed.kept, "tried_and_rejected": mixed.rejected },
+            "mixed_precision": { "error_budget": o.error_budget, "kept_float": mixed.kept, "tried_and_rejected": mixed.rejected, "note": mixed.warning },
+            "hard_limit": o.hard_limit,
             "float_where_faster": speed,
             "float_nodes": float_nodes,
             "output_errors": outputs,
@@ -370,6 +437,30 @@ impl Pass for Quantize {
             "layers": layers.iter().take(REPORTED_LAYERS).collect::<Vec<_>>(),
         }))
     }
+}
+
+/// Refuses a result past the hard limit, naming the worst output groups and layers.
+fn check_hard_limit(outputs: &[attribution::OutputError], layers: &[LayerError], frames: usize, limit: HardLimit) -> Result<()> {
+    // As worst_rel_l2 judges: a decoded output by its groups, any other output whole.
+    let grouped: HashSet<&str> = outputs.iter().filter(|e| e.group.is_some()).map(|e| e.output.as_str()).collect();
+    let broken: Vec<String> = outputs
+        .iter()
+        .filter(|e| e.group.is_some() || !grouped.contains(e.output.as_str()))
+        .filter(|e| !(e.error.rel_l2 <= limit.max_rel_l2) || !(e.error.cosine >= limit.min_cosine))
+        .map(|e| format!("{}{} (rel L2 {:.3}, cosine {:.3})", e.output, e.group.map_or(String::new(), |g| format!(" {g}")), e.error.rel_l2, e.error.cosine))
+        .collect();
+    if broken.is_empty() {
+        return Ok(());
+    }
+    let worst: Vec<String> = layers.iter().take(3).map(|l| format!("{} ({:.3})", l.node, l.accumulated.map_or(l.alone.rel_l2, |e| e.rel_l2))).collect();
+    Err(crate::pipeline::QualityFailure(format!(
+        "INT8 broke the model: {} against float on {frames} held-out frames, past the hard limit (rel L2 {}, cosine {}); worst layers: {}. Calibrate on frames like the model's input (--calib), keep those layers float (keep_float), or raise hard_limit if this is expected",
+        broken.join(", "),
+        limit.max_rel_l2,
+        limit.min_cosine,
+        worst.join(", ")
+    ))
+    .into())
 }
 
 /// The model before an earlier `prune`, for `qat: {teacher: original}`: the same frames
@@ -394,7 +485,7 @@ fn quantization_aware(float: &ModelProto, original: Option<&crate::pipeline::Tea
     if frames.len() < q.batch {
         bail!("qat has {} calibration frames for batches of {}; raise calib_frames or lower qat's batch", frames.len(), q.batch);
     }
-    let mut schedule = crate::quant::qat::schedule(q.minutes, q.epochs, q.lr, q.batch, o.seed, q.device.clone());
+    let mut schedule = crate::quant::qat::schedule(q.steps, q.minutes, q.threads, q.lr, q.batch, o.seed, q.device.clone());
     let (teacher, view, heads) = match original {
         None => (float, None, crate::prune::recover::head_specs(float)?),
         Some(t) => {
@@ -430,6 +521,7 @@ fn quantization_aware(float: &ModelProto, original: Option<&crate::pipeline::Tea
         "held_out_frames": held_out.len(),
         "output_rel_l2": { "before": super::prune::by_name(&before), "after": super::prune::by_name(&after) },
         "emitted_vs_fake_quant_rel_l2": t.reproduced,
+        "not_reproducible": t.outcome.capped.then(|| t.outcome.cap_note()),
         "training": t.outcome,
     });
     let errors = original.is_none().then_some(if kept { after } else { before });

@@ -24,13 +24,19 @@ use crate::quant::attribution::{output_errors, worst_rel_l2};
 use crate::scene::compare::SceneView;
 use anyhow::{anyhow, bail, Result};
 
-#[derive(serde::Deserialize)]
+#[derive(serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Options {
-    /// Time budget of the training; the schedule shortens to fit it.
-    pub minutes: f64,
-    /// Passes over the frames, when the budget allows.
-    pub epochs: usize,
+    /// Optimizer steps of batch `batch`: the schedule (warm-up, cosine decay) follows them.
+    pub steps: usize,
+    /// Steps of linear warm-up at the start.
+    pub warmup: usize,
+    /// A cap on the training's wall time (none by default). When it bites, training stops
+    /// early, the report and stderr say so, and the artifact is marked not reproducible.
+    pub minutes: Option<f64>,
+    /// Training threads (torch and the CPU teacher), fixed so that sums come out the same;
+    /// 0: every core of the compiling machine, recorded in the manifest.
+    pub threads: usize,
     pub lr: f64,
     /// Training frames (unlabelled), at most what fits in 1 GiB of pixels; 16 more are held
     /// out to judge the result.
@@ -64,9 +70,26 @@ pub enum Train {
     Estimates,
 }
 
+impl Options {
+    /// The ranges, checked when the recipe loads.
+    pub fn check(&self) -> Result<()> {
+        crate::prune::recover::check_schedule("recover", self.steps, self.minutes, self.lr, self.batch)?;
+        if self.frames < self.batch {
+            bail!("recover: frames ({}) must be at least batch ({})", self.frames, self.batch);
+        }
+        if self.warmup >= self.steps {
+            bail!("recover: warmup ({}) must be fewer than steps ({})", self.warmup, self.steps);
+        }
+        if ![self.box_edges, self.class_foreground].iter().all(|w| *w >= 0.0 && w.is_finite()) {
+            bail!("recover: box_edges and class_foreground must be finite and 0 or more");
+        }
+        Ok(())
+    }
+}
+
 impl Default for Options {
     fn default() -> Self {
-        Options { minutes: 15.0, epochs: 30, lr: 1e-3, frames: 512, batch: 16, seed: 0, device: String::new(), train: Train::All, box_edges: 16.0, class_foreground: 4.0 }
+        Options { steps: 1000, warmup: 0, minutes: None, threads: 0, lr: 1e-3, frames: 512, batch: 16, seed: 0, device: String::new(), train: Train::All, box_edges: 16.0, class_foreground: 4.0 }
     }
 }
 
@@ -82,11 +105,17 @@ impl Pass for Recover {
         "recover"
     }
 
+    fn check(&self) -> Result<()> {
+        self.options.check()
+    }
+
+    fn needs(&self) -> Vec<crate::pipeline::Capability> {
+        vec![crate::pipeline::Capability::Teacher]
+    }
+
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
-        if o.frames < o.batch || o.batch == 0 || !(o.lr > 0.0) || !(o.minutes > 0.0) || ![o.box_edges, o.class_foreground].iter().all(|w| *w >= 0.0 && w.is_finite()) {
-            bail!("recover needs frames >= batch > 0, lr > 0, minutes > 0, and finite box_edges and class_foreground >= 0");
-        }
+        o.check()?;
         let Teacher { model: teacher, kept, window, estimates } = cx.teacher.borrow().clone().ok_or_else(|| anyhow!("recover distills a pruned or scene-specialized model from the model before: put a prune pass before it in the recipe (or specialize with --scene)"))?;
         // Frames are the teacher's: with a scene ROI the student sees their crop.
         let g = teacher.graph.as_ref().ok_or_else(|| anyhow!("teacher has no graph"))?;
@@ -109,7 +138,7 @@ impl Pass for Recover {
             Train::All => None,
             Train::Estimates => Some(present(model, &estimates)?),
         };
-        let opts = Distill { minutes: o.minutes, epochs: o.epochs, lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone(), window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground };
+        let opts = Distill { steps: o.steps, warmup: o.warmup, minutes: o.minutes, threads: crate::prune::recover::resolve_threads(o.threads), lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone(), window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground };
         let outcome = distill(&mut trained, &teacher, &kept, &train.iter().map(image).collect::<Vec<_>>(), &check.iter().map(image).collect::<Vec<_>>(), &opts)?;
         let after = errors(&trained)?;
         let kept = worst_rel_l2(&after) < worst_rel_l2(&before);
@@ -125,6 +154,7 @@ impl Pass for Recover {
             "held_out_frames": check.len(),
             "calibration": source,
             "output_rel_l2": { "before": by_name(&before), "after": by_name(&after) },
+            "not_reproducible": outcome.capped.then(|| outcome.cap_note()),
             "training": outcome,
         }))
     }

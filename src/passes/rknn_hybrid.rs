@@ -23,7 +23,7 @@ use serde::{Deserialize, Serialize};
 
 pub const METADATA_KEY: &str = "pdi.rknn_fp16_layers";
 
-#[derive(Deserialize)]
+#[derive(serde::Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Options {
     /// Largest rel L2 of any output against float that the INT8 simulation may reach.
@@ -56,6 +56,10 @@ pub struct RknnHybrid {
 impl Pass for RknnHybrid {
     fn name(&self) -> &'static str {
         "rknn-hybrid"
+    }
+
+    fn needs(&self) -> Vec<crate::pipeline::Capability> {
+        vec![crate::pipeline::Capability::SplitHead]
     }
 
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {

@@ -39,7 +39,7 @@ const CHANNEL_ALIGN: usize = 16;
 /// depthwise conv of the PALS-Bridge stays: rknn-convert shows it placed on the NPU).
 const COMMON_KERNEL: i64 = 7;
 
-#[derive(serde::Deserialize)]
+#[derive(serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Options {
     /// Highest IR version written (RKNN-Toolkit2 2.5 reads ≤ 9).
@@ -71,6 +71,10 @@ struct HeadConv {
 impl Pass for RknnLegalize {
     fn name(&self) -> &'static str {
         "rknn-legalize"
+    }
+
+    fn provides(&self) -> Vec<crate::pipeline::Capability> {
+        vec![crate::pipeline::Capability::SplitHead]
     }
 
     fn run(&self, model: &mut ModelProto, _: &PassContext) -> Result<serde_json::Value> {

@@ -41,12 +41,16 @@ use crate::tensor::Tensor;
 use anyhow::{anyhow, bail, Result};
 use std::collections::BTreeMap;
 
-#[derive(serde::Deserialize)]
+#[derive(serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Options {
-    /// Time budget; the cosine schedule shortens to fit it.
-    pub minutes: f64,
-    pub epochs: usize,
+    /// Optimizer steps: the cosine schedule follows them.
+    pub steps: usize,
+    /// A cap on the training's wall time (none by default); when it bites the report says so
+    /// and the artifact is marked not reproducible.
+    pub minutes: Option<f64>,
+    /// Training threads, fixed; 0: every core of the compiling machine (recorded).
+    pub threads: usize,
     /// Adam's step as a fraction of each tensor's largest magnitude (as `quantize`'s `qat`).
     pub lr: f64,
     pub batch: usize,
@@ -57,9 +61,20 @@ pub struct Options {
     pub device: String,
 }
 
+impl Options {
+    /// The ranges, checked when the recipe loads.
+    pub fn check(&self) -> Result<()> {
+        crate::prune::recover::check_schedule("rknn-qat", self.steps, self.minutes, self.lr, self.batch)?;
+        if self.frames < self.batch {
+            bail!("rknn-qat has {} frames for batches of {}; raise frames or lower batch", self.frames, self.batch);
+        }
+        Ok(())
+    }
+}
+
 impl Default for Options {
     fn default() -> Self {
-        Options { minutes: 5.0, epochs: 100, lr: 1e-4, batch: 8, frames: 64, seed: 0, device: String::new() }
+        Options { steps: 800, minutes: None, threads: 0, lr: 1e-4, batch: 8, frames: 64, seed: 0, device: String::new() }
     }
 }
 
@@ -76,14 +91,17 @@ impl Pass for RknnQat {
         "rknn-qat"
     }
 
+    fn check(&self) -> Result<()> {
+        self.options.check()
+    }
+
+    fn needs(&self) -> Vec<crate::pipeline::Capability> {
+        vec![crate::pipeline::Capability::SplitHead]
+    }
+
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
-        if !(o.minutes > 0.0 && o.minutes.is_finite()) || !(o.lr > 0.0 && o.lr.is_finite()) || o.batch == 0 || o.epochs == 0 {
-            bail!("rknn-qat: minutes and lr must be positive numbers, batch and epochs at least 1");
-        }
-        if o.frames < o.batch {
-            bail!("rknn-qat has {} frames for batches of {}; raise frames or lower batch", o.frames, o.batch);
-        }
+        o.check()?;
         let layout = HeadLayout::from_model(model).map_err(|_| anyhow!("rknn-qat needs a model from rknn-legalize: put it after rknn-legalize in the recipe"))?;
         if !crate::passes::rknn_hybrid::stored(model)?.is_empty() {
             bail!("rknn-qat trains every layer in INT8, and this model has rknn-hybrid's FP16 spans: drop rknn-hybrid from the recipe");
@@ -140,7 +158,7 @@ impl Pass for RknnQat {
         let (quantized, dequantized) = at_points::emit(model, &params)?;
 
         let heads = crate::prune::recover::split_head_specs(model, &dequantized)?;
-        let schedule = qat::schedule(o.minutes, o.epochs, o.lr, o.batch, o.seed, o.device.clone());
+        let schedule = qat::schedule(o.steps, o.minutes, o.threads, o.lr, o.batch, o.seed, o.device.clone());
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         let student = Student { heads, scale_groups: Vec::new(), scale_lr: 1.0, weight_range: at_points::WEIGHT_RANGE, pin_extremes: true };
         let t = qat::train(&quantized, model, student, &frames, &held, &schedule, threads)?;
@@ -170,6 +188,7 @@ impl Pass for RknnQat {
             "held_out_frames": held.len(),
             "qdq_vs_float_rel_l2": { "before": by_name(&before), "after": by_name(&after) },
             "emitted_vs_fake_quant_rel_l2": t.reproduced,
+            "not_reproducible": t.outcome.capped.then(|| t.outcome.cap_note()),
             "training": t.outcome,
         }))
     }

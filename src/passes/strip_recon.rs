@@ -11,7 +11,7 @@ use crate::onnx::proto::ModelProto;
 use crate::pipeline::{Pass, PassContext};
 use anyhow::{bail, Result};
 
-#[derive(serde::Deserialize, Default)]
+#[derive(serde::Serialize, serde::Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 pub struct Options {
     /// Outputs to keep, overriding the recognition of the reconstruction output.

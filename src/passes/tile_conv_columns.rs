@@ -40,7 +40,7 @@ pub const DIRECT_MAX_K: usize = 576;
 /// More tiles than this cost more in slicing and concatenation than any kernel choice saves.
 const MAX_TILES: usize = 16;
 
-#[derive(Deserialize, Default)]
+#[derive(serde::Serialize, Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 pub struct Options {
     /// The convolutions to tile, by node name.

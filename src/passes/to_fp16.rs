@@ -23,7 +23,7 @@ use anyhow::{anyhow, Result};
 use half::f16;
 use std::collections::{BTreeMap, HashMap, HashSet};
 
-#[derive(serde::Deserialize)]
+#[derive(serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Options {
     /// Compute in f16 too; false stores weights in f16 and computes in f32.

@@ -57,14 +57,112 @@ impl Teacher {
     }
 }
 
+/// A lossy pass's result past its hard limit: the artifact would be broken, not merely less
+/// accurate. The command exits 1 (a quality failure, not bad input) and writes no artifact.
+#[derive(Debug)]
+pub struct QualityFailure(pub String);
+
+impl std::fmt::Display for QualityFailure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for QualityFailure {}
+
+/// Whether `e` is, or was caused by, a [`QualityFailure`].
+pub fn is_quality_failure(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| c.is::<QualityFailure>())
+}
+
+/// What a pass needs from the passes before it (or the input model), or provides to those after.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Capability {
+    /// The model before a structural change (`prune`, or a scene pass), to distill from.
+    Teacher,
+    /// A detection head split per stride (`rknn-legalize`), or an input model that has one.
+    SplitHead,
+}
+
+impl Capability {
+    /// What a recipe does to provide it, for the error that names a missing one.
+    fn remedy(self) -> &'static str {
+        match self {
+            Capability::Teacher => "put prune (or a scene pass, through --scene) before it",
+            Capability::SplitHead => "put rknn-legalize before it",
+        }
+    }
+}
+
 pub trait Pass {
     fn name(&self) -> &'static str;
+    /// The options' ranges, checked when the recipe loads, before any pass runs.
+    fn check(&self) -> Result<()> {
+        Ok(())
+    }
+    /// What must come before it (from an earlier pass, or the input model).
+    fn needs(&self) -> Vec<Capability> {
+        Vec::new()
+    }
+    fn provides(&self) -> Vec<Capability> {
+        Vec::new()
+    }
+    /// Checks what the pass will need of the input model and the command line (`--psf`),
+    /// before any pass runs.
+    fn preflight(&self, _input: &ModelProto, _cx: &PassContext) -> Result<()> {
+        Ok(())
+    }
     /// Rewrites `model`; returns the pass's own report.
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value>;
 }
 
 pub fn build_pass(spec: &PassSpec) -> Result<Box<dyn Pass>> {
-    crate::passes::build(spec)
+    let built = crate::passes::build(spec)?;
+    built.pass.check()?;
+    Ok(built.pass)
+}
+
+/// `recipe` with every pass's options resolved (defaults filled in): what the manifest
+/// records, and what a rebuild runs.
+pub fn resolve(recipe: &Recipe) -> Result<Recipe> {
+    let mut out = recipe.clone();
+    for p in &mut out.passes {
+        p.options = crate::passes::build(p).with_context(|| format!("pass {}", p.name))?.options;
+    }
+    Ok(out)
+}
+
+/// Checks a whole recipe before any pass runs, in well under a second: every pass's options
+/// and ranges, the order (each need met by an earlier pass or by the input model), and what
+/// the command line must supply (`--calib` with frames, `--psf` where a pass needs it). The
+/// error names the recipe's line.
+pub fn check(recipe: &Recipe, input: &ModelProto, cx: &PassContext) -> Result<()> {
+    if let Some(dir) = &cx.calib {
+        let n = crate::frames::count(dir).with_context(|| format!("--calib {}", dir.display()))?;
+        if n == 0 {
+            anyhow::bail!("--calib {}: no frames (PNG/TIFF 8/16-bit grayscale or .npy)", dir.display());
+        }
+    }
+    if let Some(psf) = &cx.psf {
+        if !psf.is_file() {
+            anyhow::bail!("--psf {}: no such file", psf.display());
+        }
+    }
+    let at = |spec: &PassSpec| if spec.line > 0 { format!("line {}: {}", spec.line, spec.name) } else { format!("pass {}", spec.name) };
+    let passes: Vec<Box<dyn Pass>> = recipe.passes.iter().map(|s| build_pass(s).with_context(|| at(s))).collect::<Result<_>>()?;
+    let mut have: Vec<Capability> = Vec::new();
+    if crate::detect::split_head::HeadLayout::from_model(input).is_ok() {
+        have.push(Capability::SplitHead);
+    }
+    for (pass, spec) in passes.iter().zip(&recipe.passes) {
+        if let Some(missing) = pass.needs().into_iter().find(|n| !have.contains(n)) {
+            anyhow::bail!("{}: needs {} from an earlier pass: {}", at(spec), serde_json::to_value(missing)?.as_str().unwrap_or("?"), missing.remedy());
+        }
+        have.extend(pass.provides());
+        pass.preflight(input, cx).with_context(|| at(spec))?;
+    }
+    Ok(())
 }
 
 #[derive(Serialize, Clone, Copy)]

@@ -9,16 +9,19 @@
 //! ```
 
 use anyhow::{anyhow, bail, Context, Result};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct PassSpec {
     pub name: String,
     pub options: yaml_serde::Value,
+    /// The recipe file's line that names the pass (1-based; 0 when not from a file).
+    #[serde(skip, default)]
+    pub line: usize,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Recipe {
     pub name: String,
     pub description: String,
@@ -43,7 +46,10 @@ impl Recipe {
         }
         let passes = match map.get("passes") {
             None | Some(yaml_serde::Value::Null) => Vec::new(),
-            Some(yaml_serde::Value::Sequence(items)) => items.iter().map(pass_spec).collect::<Result<_>>()?,
+            Some(yaml_serde::Value::Sequence(items)) => {
+                let lines = pass_lines(text, items.len());
+                items.iter().zip(lines).map(|(item, line)| Ok(PassSpec { line, ..pass_spec(item)? })).collect::<Result<_>>()?
+            }
             Some(_) => bail!("`passes` must be a list"),
         };
         Ok(Recipe { name: text_field("name"), description: text_field("description"), passes })
@@ -100,20 +106,29 @@ impl Recipe {
         // distills the crop from the full model anyway.
         let prunes = self.passes.iter().any(|p| p.name == "prune");
         let options = |n: &str| if n == "crop-roi" && prunes { yaml_serde::from_str("{halo: zero}") } else { Ok(yaml_serde::Value::Null) };
-        let inserted = wanted.iter().map(|n| Ok(PassSpec { name: n.to_string(), options: options(n)? })).collect::<Result<Vec<_>>>()?;
+        let inserted = wanted.iter().map(|n| Ok(PassSpec { name: n.to_string(), options: options(n)?, line: 0 })).collect::<Result<Vec<_>>>()?;
         let mut out = self.clone();
         out.passes.splice(at..at, inserted);
         Ok(out)
     }
 }
 
+/// The lines naming each of `n` passes: the block list's `- ` items after `passes:`, or the
+/// `passes:` line itself for a flow list (`passes: [a, b]`).
+fn pass_lines(text: &str, n: usize) -> Vec<usize> {
+    let lines: Vec<&str> = text.lines().collect();
+    let Some(at) = lines.iter().position(|l| l.starts_with("passes:")) else { return vec![0; n] };
+    let items: Vec<usize> = lines.iter().enumerate().skip(at + 1).filter(|(_, l)| l.trim_start().starts_with("- ")).map(|(i, _)| i + 1).collect();
+    if items.len() == n { items } else { vec![at + 1; n] }
+}
+
 fn pass_spec(item: &yaml_serde::Value) -> Result<PassSpec> {
     match item {
-        yaml_serde::Value::String(s) => Ok(PassSpec { name: s.clone(), options: yaml_serde::Value::Null }),
+        yaml_serde::Value::String(s) => Ok(PassSpec { name: s.clone(), options: yaml_serde::Value::Null, line: 0 }),
         yaml_serde::Value::Mapping(m) if m.len() == 1 => {
             let (k, v) = m.iter().next().expect("one entry");
             let name = k.as_str().ok_or_else(|| anyhow!("a pass name must be a string"))?;
-            Ok(PassSpec { name: name.to_string(), options: v.clone() })
+            Ok(PassSpec { name: name.to_string(), options: v.clone(), line: 0 })
         }
         _ => bail!("each pass must be a name or `name: {{options}}`"),
     }
@@ -129,6 +144,7 @@ mod tests {
         assert_eq!(r.passes.len(), 2);
         assert_eq!(r.passes[1].name, "prune");
         assert_eq!(r.passes[1].options.get("ratio").and_then(|v| v.as_f64()), Some(0.5));
+        assert_eq!((r.passes[0].line, r.passes[1].line), (3, 4), "the lines naming them");
         assert!(Recipe::parse("name: x\npases: []\n").is_err());
         assert!(Recipe::parse("passes: 3\n").is_err());
         let again = Recipe::parse(&r.to_yaml().unwrap()).unwrap();

@@ -18,8 +18,14 @@ use std::process::Command;
 const WORKER: &str = include_str!("recover_worker.py");
 
 pub struct Options {
-    pub minutes: f64,
-    pub epochs: usize,
+    /// Optimizer steps: the schedule (warm-up, cosine decay) follows them alone.
+    pub steps: usize,
+    /// Linear warm-up steps at the start of the schedule.
+    pub warmup: usize,
+    /// A cap on the training's wall time; when it bites the run stops early and says so.
+    pub minutes: Option<f64>,
+    /// Torch's (and the CPU teacher's) threads: fixed, so that sums come out the same.
+    pub threads: usize,
     pub lr: f64,
     pub batch: usize,
     pub seed: u64,
@@ -45,11 +51,43 @@ pub struct Outcome {
     pub held_out_loss_after: f64,
     pub loss_per_epoch: Vec<f64>,
     pub epochs: usize,
+    /// Steps taken, of `steps_planned`; fewer only when the time cap stopped the run.
     pub steps: usize,
+    pub steps_planned: usize,
+    pub capped: bool,
+    pub threads: usize,
     pub seconds: f64,
     pub frames_per_second: f64,
     pub device: String,
     pub torch: String,
+}
+
+/// Checks the schedule every training pass shares (`pass` names it in the message).
+pub fn check_schedule(pass: &str, steps: usize, minutes: Option<f64>, lr: f64, batch: usize) -> Result<()> {
+    if steps == 0 || batch == 0 {
+        bail!("{pass}: steps and batch must be at least 1");
+    }
+    // `!(x > 0)` refuses NaN too.
+    if !(lr > 0.0 && lr.is_finite()) {
+        bail!("{pass}: lr must be a positive number");
+    }
+    if minutes.is_some_and(|m| !(m > 0.0 && m.is_finite())) {
+        bail!("{pass}: minutes (a time cap) must be a positive number");
+    }
+    Ok(())
+}
+
+/// A training thread count: 0 is every core of this machine, resolved once so that the
+/// manifest records the count the weights were trained with.
+pub fn resolve_threads(threads: usize) -> usize {
+    if threads > 0 { threads } else { std::thread::available_parallelism().map_or(1, |n| n.get()) }
+}
+
+impl Outcome {
+    /// What a report and the manifest say of a run the time cap stopped.
+    pub fn cap_note(&self) -> String {
+        format!("stopped at {} of {} steps by the time cap; the artifact is not reproducible", self.steps, self.steps_planned)
+    }
 }
 
 /// The head convolutions to distil and how to read their channels, for the worker.
@@ -218,7 +256,7 @@ pub(crate) fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Te
     let mut config = serde_json::json!({
         "student": dir.join("student.onnx"), "teacher": dir.join("teacher.onnx"), "out": dir.join("trained.onnx"),
         "frames": dir.join("frames.npy"), "held_out": dir.join("held_out.npy"), "heads": job.heads, "features": job.features,
-        "window": o.window, "trainable": o.trainable, "minutes": o.minutes, "epochs": o.epochs, "lr": o.lr, "batch": o.batch, "seed": o.seed,
+        "window": o.window, "trainable": o.trainable, "steps": o.steps, "warmup": o.warmup, "minutes": o.minutes, "threads": o.threads, "lr": o.lr, "batch": o.batch, "seed": o.seed,
         "device": if o.device.is_empty() { serde_json::Value::Null } else { o.device.clone().into() },
         "outputs_to": if job.outputs { serde_json::json!(outputs_to) } else { serde_json::Value::Null },
     });
@@ -227,7 +265,8 @@ pub(crate) fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Te
     }
     std::fs::write(dir.join("config.json"), serde_json::to_vec(&config)?)?;
     let pb = ProgressBar::new(1);
-    pb.set_style(ProgressStyle::with_template(&format!("{} [{{bar:30}}] {{pos}}/{{len}} steps, {{msg}} ({{elapsed}})", job.label)).expect("valid template").progress_chars("=> "));
+    pb.set_length(o.steps as u64);
+    pb.set_style(ProgressStyle::with_template(&format!("{} [{{bar:30}}] {{pos}}/{{len}} steps, {{msg}} ({{elapsed}}, {{eta}} left)", job.label)).expect("valid template").progress_chars("=> "));
     let config_path = dir.join("config.json");
     let args = [OsStr::new("train"), config_path.as_os_str()];
     let done = crate::pyenv::run_worker(dir, ("recover_worker.py", WORKER), &[], &args, |event| match event["event"].as_str() {
@@ -241,6 +280,9 @@ pub(crate) fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Te
     });
     pb.finish_and_clear();
     let outcome: Outcome = serde_json::from_value(done?)?;
+    if outcome.capped {
+        crate::warn::warn(format!("{}: {}", job.label, outcome.cap_note()));
+    }
     let trained = crate::onnx::load(&dir.join("trained.onnx"))?.model;
     take_weights(student, &trained)?;
     let n_outputs = student.graph.as_ref().map_or(0, |g| g.output.len());

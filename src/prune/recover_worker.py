@@ -613,7 +613,7 @@ def total_loss(ss, ts, heads, features=()):
     return total
 
 
-def ort_teacher(path, names):
+def ort_teacher(path, names, threads):
     """On the CPU the teacher runs on ONNX Runtime (twice as fast as torch there): a callable
     like Graph's, returning the named values as tensors."""
     import onnxruntime as ort
@@ -634,6 +634,9 @@ def ort_teacher(path, names):
     # follows: without spinning, a pruned-v8 training step with its teacher took 133-134 ms
     # against 150-155 ms (batch 8, 2 cores, the two alternating in one session).
     so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    # A fixed thread count: the teacher's sums come out the same on every run.
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
     sess = ort.InferenceSession(m.SerializeToString(), so, providers=["CPUExecutionProvider"])
     image = [i.name for i in sess.get_inputs()][0]
     return lambda x, wanted: [torch.from_numpy(v) for v in sess.run(wanted, {image: x.cpu().numpy()})]
@@ -667,10 +670,14 @@ def augment(x, gen):
 
 
 def setup(cfg):
-    """The device (CUDA when torch sees it, unless the config names one), every core, and the
-    config's seed for torch and for the returned generator (which draws on the CPU)."""
+    """The device (CUDA when torch sees it, unless the config names one), the config's fixed
+    thread count, and its seed for torch and for the returned generator (which draws on the
+    CPU). On the CPU the kernels are deterministic: the same config, thread count and machine
+    give the same weights, however loaded the machine is."""
     dev = torch.device(cfg.get("device") or ("cuda" if torch.cuda.is_available() else "cpu"))
-    torch.set_num_threads(max(1, os.cpu_count() or 1))
+    torch.set_num_threads(int(cfg.get("threads") or os.cpu_count() or 1))
+    if dev.type == "cpu":
+        torch.use_deterministic_algorithms(True)
     torch.manual_seed(cfg["seed"])
     return dev, torch.Generator().manual_seed(cfg["seed"])
 
@@ -685,7 +692,7 @@ def train(cfg):
     names = [h["value"] for h in heads] + [f["value"] for f in features]
     # The student's copy of a value where it differs (a quantized value's dequantized copy).
     student_names = [h.get("student_value") or h["value"] for h in heads] + [f["value"] for f in features]
-    teacher = ort_teacher(cfg["teacher"], names) if dev.type == "cpu" else Graph(onnx.load(cfg["teacher"]), trainable=False).to_device(dev).eval()
+    teacher = ort_teacher(cfg["teacher"], names, torch.get_num_threads()) if dev.type == "cpu" else Graph(onnx.load(cfg["teacher"]), trainable=False).to_device(dev).eval()
     window = cfg.get("window")
     frames = torch.from_numpy(np.load(cfg["frames"])).to(dev)
     if window is not None:
@@ -707,37 +714,35 @@ def train(cfg):
     opt = torch.optim.Adam(student.param_groups(cfg["lr"], cfg.get("relative_lr", False), cfg.get("scale_lr", 1.0)))
     start, before = time.time(), held_loss()
     emit({"event": "start", "device": str(dev), "parameters": sum(p.numel() for p in student.parameters()), "held_out_loss": before, "frames": n})
-    most = cfg["epochs"] * per_epoch
-    steps, step, seen, curve = most, 0, 0, []
-    budget = cfg["minutes"] * 60
-    steady = None  # (time, step) after the first steps, which pay for allocation and autotuning
-    epoch = 0
-    while step < steps:
+    # The schedule follows the step count alone; the minutes only cap a run (reported), so
+    # the same job gives the same weights whatever the machine's speed or load.
+    steps, warmup = cfg["steps"], cfg.get("warmup", 0)
+    cap = cfg.get("minutes")
+    step, seen, curve, epoch, capped = 0, 0, [], 0, False
+    while step < steps and not capped:
         perm = torch.randperm(n, generator=gen)
         tot, cnt = 0.0, 0
         for i in range(per_epoch):
             if step >= steps:
                 break
+            if cap is not None and time.time() - start > cap * 60:
+                capped = True
+                break
             x = augment(frames[perm[i * batch:(i + 1) * batch].to(dev)], gen)
             with torch.no_grad():
                 t = teacher(x, names)
             loss = total_loss(student(student_in(x), student_names), t, heads, features)
-            # Cosine decay over the steps the budget allows (re-estimated as steps are timed).
+            # Linear warm-up, then cosine decay to 2% over the remaining steps.
+            scale = (step + 1) / warmup if step < warmup else 0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(1, steps - warmup)))
             for g in opt.param_groups:
-                g["lr"] = g["base_lr"] * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * step / steps)))
+                g["lr"] = g["base_lr"] * scale
             opt.zero_grad()
             loss.backward()
             opt.step()
             student.restore_pinned()
             step, seen = step + 1, seen + len(x)
             tot, cnt = tot + float(loss), cnt + 1
-            if step == 5:
-                steady = (time.time(), step)
-            elif steady and step % 10 == 0:
-                # The schedule's length: what the rest of the budget allows at the steady rate.
-                per_step = (time.time() - steady[0]) / (step - steady[1])
-                left = budget - (time.time() - start)
-                steps = min(most, max(step + 1, step + int(left / per_step)))
+            if step % 10 == 0 or step == steps:
                 emit({"event": "step", "step": step, "steps": steps, "loss": float(loss)})
         epoch += 1
         curve.append(tot / max(cnt, 1))
@@ -749,8 +754,8 @@ def train(cfg):
     if cfg.get("outputs_to"):
         save_outputs(student, student_model, held, cfg["outputs_to"])
     emit({"event": "done", "held_out_loss_before": before, "held_out_loss_after": after, "loss_per_epoch": curve, "epochs": epoch,
-          "steps": step, "seconds": seconds, "frames_per_second": seen / max(seconds, 1e-9), "device": str(dev),
-          "torch": torch.__version__})
+          "steps": step, "steps_planned": steps, "capped": capped, "seconds": seconds, "frames_per_second": seen / max(seconds, 1e-9),
+          "device": str(dev), "threads": torch.get_num_threads(), "torch": torch.__version__})
 
 
 def save_outputs(g, model, frames, folder):

@@ -29,8 +29,9 @@ pub const EDGE_WEIGHT: f64 = 1.0;
 /// The distillation schedule both QAT passes train with: no window or subset (every weight of
 /// the whole frame), the box edges at `EDGE_WEIGHT`, and no class foreground term (QAT was
 /// measured without it; `recover`'s default is for pruned students).
-pub fn schedule(minutes: f64, epochs: usize, lr: f64, batch: usize, seed: u64, device: String) -> recover::Options {
-    recover::Options { minutes, epochs, lr, batch, seed, device, window: None, trainable: None, box_edges: EDGE_WEIGHT, class_foreground: 0.0 }
+pub fn schedule(steps: usize, minutes: Option<f64>, threads: usize, lr: f64, batch: usize, seed: u64, device: String) -> recover::Options {
+    let threads = recover::resolve_threads(threads);
+    recover::Options { steps, warmup: 0, minutes, threads, lr, batch, seed, device, window: None, trainable: None, box_edges: EDGE_WEIGHT, class_foreground: 0.0 }
 }
 
 pub struct Trained {

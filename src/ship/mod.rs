@@ -16,9 +16,9 @@
 
 pub mod render;
 
-use crate::bench::{last_pass_of, time_together, with_recover_minutes, Timing, DETECT_F32, DETECT_INT8};
+use crate::bench::{last_pass_of, time_together, with_recover_steps, Timing, DETECT_F32, DETECT_INT8};
 use crate::compile::{compile, CompileReport, CompileRequest};
-use crate::fsutil::{ensure_dir, write_atomic};
+use crate::fsutil::{ensure_dir, write_atomic, StagedDir};
 use crate::pipeline::{PassContext, Recipe};
 use crate::runtime::Engine;
 use crate::targets::Target;
@@ -39,7 +39,7 @@ pub struct ShipRequest {
     pub data: Option<PathBuf>,
     /// Simulated frames when no --data is given.
     pub frames: usize,
-    pub recover_minutes: Option<f64>,
+    pub recover_steps: Option<usize>,
     pub runs: usize,
     pub threads: usize,
 }
@@ -60,6 +60,9 @@ pub struct Variant {
     pub agreement: Option<f64>,
     pub agreement_tract: Option<f64>,
     pub compile_seconds: f64,
+    /// What the variant missed within its limits (an error budget), in words.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub note: Option<String>,
 }
 
 #[derive(Serialize)]
@@ -72,6 +75,8 @@ pub struct ShipReport {
     pub variants: Vec<Variant>,
     /// The RKNN folder and what it holds (the toolkit builds model.rknn from it).
     pub rknn: String,
+    /// Variants whose compile ended past a lossy pass's hard limit (no artifact), and why.
+    pub failed: Vec<String>,
     pub warnings: Vec<String>,
     pub seconds: f64,
 }
@@ -79,7 +84,7 @@ pub struct ShipReport {
 /// The compiles: (name, source variant or the original, recipe text, target).
 fn stages(req: &ShipRequest) -> Result<Vec<(&'static str, Option<&'static str>, String, Target)>> {
     // The NPU recipe without its legalization: pruned in 16-channel steps, recovered.
-    let mut pruned = Recipe::parse(&with_recover_minutes(DETECT_PRUNED_RKNN, req.recover_minutes)?)?;
+    let mut pruned = Recipe::parse(&with_recover_steps(DETECT_PRUNED_RKNN, req.recover_steps)?)?;
     pruned.passes.retain(|p| p.name != "rknn-legalize");
     pruned.name = "pruned-f32".into();
     Ok(vec![
@@ -92,12 +97,20 @@ fn stages(req: &ShipRequest) -> Result<Vec<(&'static str, Option<&'static str>, 
 
 pub fn ship(req: &ShipRequest) -> Result<ShipReport> {
     let started = Instant::now();
-    let recipes = req.out.join("recipes");
+    // Built whole beside --out and moved into place at the end (an earlier folder replaced).
+    let staged = StagedDir::new(&req.out)?;
+    let root = staged.path().to_path_buf();
+    let recipes = root.join("recipes");
     ensure_dir(&recipes)?;
-    let folder = |v: &str| req.out.join(v);
+    let folder = |v: &str| root.join(v);
     let mut compiled: Vec<(&str, CompileReport, f64)> = Vec::new();
     let mut warnings = Vec::new();
+    let mut failed: Vec<(&str, String)> = Vec::new();
     for (name, from, recipe, target) in stages(req)? {
+        if let Some(f) = from.filter(|f| failed.iter().any(|(n, _)| n == f)) {
+            failed.push((name, format!("its source variant {f} failed")));
+            continue;
+        }
         eprintln!("ship: compiling {name}");
         let path = recipes.join(format!("{name}.yaml"));
         write_atomic(&path, recipe.as_bytes())?;
@@ -111,13 +124,22 @@ pub fn ship(req: &ShipRequest) -> Result<ShipReport> {
             context: PassContext { psf: req.psf.clone(), calib: req.calib.clone(), keep_outputs: None, ..Default::default() },
             target,
             threads: req.threads,
-        })
-        .map_err(|e| anyhow!("compiling {name}: {e:#}"))?;
+            decisions: None,
+        });
+        let report = match report {
+            Ok(r) => r,
+            Err(e) if crate::pipeline::is_quality_failure(&e) => {
+                eprintln!("ship: {name} failed: {e:#}");
+                failed.push((name, format!("{e:#}")));
+                continue;
+            }
+            Err(e) => return Err(anyhow!("compiling {name}: {e:#}")),
+        };
         warnings.extend(report.warnings.iter().map(|w| format!("{name}: {w}")));
         compiled.push((name, report, t.elapsed().as_secs_f64()));
     }
 
-    let onnx_variants: Vec<&str> = ["f32", "pruned-f32", "pruned-int8"].to_vec();
+    let onnx_variants: Vec<&str> = ["f32", "pruned-f32", "pruned-int8"].into_iter().filter(|v| !failed.iter().any(|(f, _)| f == v)).collect();
     let mut variants = vec![original(req)?];
     for (name, report, seconds) in compiled.iter().filter(|(n, _, _)| onnx_variants.contains(n)) {
         eprintln!("ship: checking {name} against the original");
@@ -141,7 +163,7 @@ pub fn ship(req: &ShipRequest) -> Result<ShipReport> {
         }
         variants.push(Variant {
             name: name.to_string(),
-            folder: folder(name).display().to_string(),
+            folder: req.out.join(name).display().to_string(),
             file: if folder(name).join("model.nnef.tar").exists() { "model.nnef.tar (tract), model.onnx".into() } else { "model.onnx".into() },
             bytes: std::fs::metadata(&model)?.len(),
             macs: report.after.macs,
@@ -152,6 +174,7 @@ pub fn ship(req: &ShipRequest) -> Result<ShipReport> {
             agreement: d.map(|d| d.agreement.map50_95),
             agreement_tract: d.and_then(|d| d.agreement_tract.as_ref()).map(|m| m.map50_95),
             compile_seconds: *seconds,
+            note: report.warnings.iter().find(|w| w.contains("missed its error budget")).cloned(),
         });
     }
 
@@ -166,7 +189,7 @@ pub fn ship(req: &ShipRequest) -> Result<ShipReport> {
             Engine::Tract => v.tract_ms = Some(*ms),
         }
     }
-    let rknn = folder("rknn");
+    let rknn = req.out.join("rknn");
     let report = ShipReport {
         model: req.model.display().to_string(),
         out: req.out.display().to_string(),
@@ -175,10 +198,12 @@ pub fn ship(req: &ShipRequest) -> Result<ShipReport> {
         runs: req.runs,
         variants,
         rknn: rknn.display().to_string(),
+        failed: failed.into_iter().map(|(n, why)| format!("{n}: {why}")).collect(),
         warnings: warnings.into_iter().chain(crate::warn::take()).collect(),
         seconds: started.elapsed().as_secs_f64(),
     };
-    write_atomic(&req.out.join("ship.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    write_atomic(&root.join("ship.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    staged.commit()?;
     Ok(report)
 }
 
@@ -199,5 +224,6 @@ fn original(req: &ShipRequest) -> Result<Variant> {
         agreement: Some(1.0),
         agreement_tract: None,
         compile_seconds: 0.0,
+        note: None,
     })
 }

@@ -36,6 +36,14 @@ impl ShipReport {
                 agreement(v),
             );
         }
+        for f in &self.failed {
+            let _ = writeln!(s, "FAILED, no artifact: {f}");
+        }
+        for v in &self.variants {
+            if let Some(n) = &v.note {
+                let _ = writeln!(s, "note: {}: {n}", v.name);
+            }
+        }
         let _ = writeln!(s, "\nmAP is mAP@0.5:0.95; agreement scores each variant's detections against the original's.");
         let _ = writeln!(s, "\nartifacts");
         for v in self.variants.iter().skip(1) {

@@ -3,7 +3,7 @@
 
 use super::{Outcome, StressReport};
 use crate::canvas::{self, Shape};
-use crate::fsutil::{ensure_dir, write_atomic};
+use crate::fsutil::{write_atomic, StagedDir};
 use anyhow::Result;
 use std::fmt::Write;
 use std::path::Path;
@@ -16,14 +16,16 @@ const CELL_H: f64 = 22.0;
 const LEFT: f64 = 210.0;
 const TOP: f64 = 70.0;
 
-pub fn write(dir: &Path, r: &StressReport) -> Result<()> {
-    ensure_dir(dir)?;
+/// Writes the folder whole (replacing an earlier one), or leaves it as it was.
+pub fn write(out: &Path, r: &StressReport) -> Result<()> {
+    let staged = StagedDir::new(out)?;
+    let dir = staged.path();
     write_atomic(&dir.join("stress.json"), serde_json::to_string_pretty(r)?.as_bytes())?;
     write_atomic(&dir.join("stress.md"), markdown(r).as_bytes())?;
     let (shapes, w, h) = heatmap(r);
     write_atomic(&dir.join("stress.svg"), canvas::svg(&shapes, w, h).as_bytes())?;
     write_atomic(&dir.join("stress.png"), &canvas::png(&shapes, w, h)?)?;
-    Ok(())
+    staged.commit()
 }
 
 fn cell(o: &Outcome) -> String {
@@ -85,8 +87,8 @@ pub fn markdown(r: &StressReport) -> String {
     }
     if !r.checks.is_empty() {
         let _ = writeln!(s, "\n## Gate: {}\n", if r.passed { "passed" } else { "FAILED" });
-        for c in r.checks.iter().filter(|c| !c.passed) {
-            let _ = writeln!(s, "- FAIL {} = {:.4} ({} {})", c.name, c.value, c.kind, c.threshold);
+        for c in r.checks.iter().filter(|c| !c.passed || c.allowed) {
+            let _ = writeln!(s, "- {}", c.line());
         }
         let _ = writeln!(s, "- {} of {} checks passed", r.checks.iter().filter(|c| c.passed).count(), r.checks.len());
     }

@@ -8,7 +8,7 @@ pub mod tract;
 pub mod tract_tiles;
 
 /// Where the compiled model goes.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Target {
     /// DIR/model.onnx for any ONNX runtime.

@@ -78,14 +78,43 @@ pub struct TractArtifact {
     pub fastest_threads: usize,
 }
 
+/// The choices the tract target makes by timing, as an earlier build recorded them in its
+/// tract.yaml: a rebuild applies them instead of timing again (as TensorRT reuses its timing
+/// cache), so that it gives the same bytes however loaded the machine is.
+#[derive(Clone, Debug, Default)]
+pub struct Decisions {
+    /// INT8 kept (true) or replaced by its float model (false).
+    pub int8: Option<bool>,
+    /// The convolutions that ship tiled.
+    pub tiled: Vec<String>,
+    /// The NNEF archive kept.
+    pub nnef: bool,
+}
+
+impl Decisions {
+    /// From a tract.yaml's contents (the manifest's `target_check`).
+    pub fn recorded(artifact: &serde_json::Value) -> Decisions {
+        Decisions {
+            int8: artifact["int8"].as_str().map(|s| s.starts_with("kept")),
+            tiled: artifact["conv_tiles"].as_array().into_iter().flatten().filter(|f| f["tiled"] == true).filter_map(|f| f["node"].as_str().map(String::from)).collect(),
+            nnef: artifact["load"] == "model.nnef.tar",
+        }
+    }
+}
+
 /// Checks `model` on tract and writes DIR/tract.yaml (and the NNEF archive where it pays);
 /// returns the model to ship: `model`, or `float` (the model before quantization) where
 /// tract ran that faster.
-pub fn write(dir: &Path, model: ModelProto, float: Option<ModelProto>, threads: usize) -> Result<(TractArtifact, ModelProto)> {
+/// With `reuse`, the timed choices are an earlier build's.
+pub fn write(dir: &Path, model: ModelProto, float: Option<ModelProto>, threads: usize, reuse: Option<&Decisions>) -> Result<(TractArtifact, ModelProto)> {
     let feeds = fixed_inputs(&model)?;
     let (name, frame) = feeds[0].clone();
     let (model, int8) = match float.filter(|_| is_quantized(&model)) {
         None => (model, None),
+        Some(float) if reuse.is_some_and(|r| r.int8.is_some()) => match reuse.and_then(|r| r.int8) {
+            Some(false) => (float, Some("replaced by its float model, as the build this one repeats decided by timing".to_string())),
+            _ => (model, Some("kept: INT8, as the build this one repeats decided by timing".to_string())),
+        },
         Some(float) => {
             let (_, q_ms) = timed_runs(&mut TractRuntime::new(&model, &feeds, threads)?, &feeds)?;
             let (_, f_ms) = timed_runs(&mut TractRuntime::new(&float, &feeds, threads)?, &feeds)?;
@@ -101,7 +130,10 @@ pub fn write(dir: &Path, model: ModelProto, float: Option<ModelProto>, threads: 
     let for_ort = model.clone();
     let mut model = model;
     let (split, left) = crate::passes::split_wide_depthwise::split_all(model.graph.as_mut().ok_or_else(|| anyhow!("model has no graph"))?)?;
-    let conv_tiles = super::tract_tiles::choose(&mut model, threads)?;
+    let conv_tiles = match reuse {
+        Some(r) => super::tract_tiles::apply(&mut model, &r.tiled)?,
+        None => super::tract_tiles::choose(&mut model, threads)?,
+    };
     let model = &model;
 
     let t = Instant::now();
@@ -134,6 +166,11 @@ pub fn write(dir: &Path, model: ModelProto, float: Option<ModelProto>, threads: 
             if drift > 1e-6 {
                 let _ = std::fs::remove_file(&tar);
                 format!("removed: its outputs differ from the ONNX file's on tract (rel L2 {drift:.2e})")
+            } else if let Some(r) = reuse {
+                if !r.nnef {
+                    let _ = std::fs::remove_file(&tar);
+                }
+                format!("{}: as the build this one repeats decided by timing (loads in {load:.0} ms against {onnx_load_ms:.0} ms from ONNX now)", if r.nnef { "kept" } else { "removed" })
             } else if load < onnx_load_ms {
                 format!("kept: loads in {load:.0} ms against {onnx_load_ms:.0} ms from ONNX")
             } else {

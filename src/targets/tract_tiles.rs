@@ -53,6 +53,19 @@ pub fn choose(model: &mut ModelProto, threads: usize) -> Result<Vec<ConvForm>> {
     Ok(forms)
 }
 
+/// Tiles the convolutions named in `tiled` (an earlier build's timed choice) without timing;
+/// a name that is not a candidate here is an error: the model is not the one that was timed.
+pub fn apply(model: &mut ModelProto, tiled: &[String]) -> Result<Vec<ConvForm>> {
+    let plans: Vec<(String, Plan)> = candidates(model)?.into_iter().filter_map(|(n, p)| p.ok().map(|p| (n, p))).collect();
+    let mut forms = Vec::new();
+    for name in tiled {
+        let (_, plan) = plans.iter().find(|(n, _)| n == name).ok_or_else(|| anyhow!("the recorded build tiled convolution '{name}', which this model does not have; it is not the model that build timed"))?;
+        tile(model.graph.as_mut().ok_or_else(|| anyhow!("model has no graph"))?, plan)?;
+        forms.push(ConvForm { node: name.clone(), tiles: plan.tiles.len(), whole_ms: f64::NAN, tiled_ms: f64::NAN, tiled: true });
+    }
+    Ok(forms)
+}
+
 /// Median times of the convolution alone, whole and tiled, and their fastest runs.
 fn time_both(model: &ModelProto, plan: &Plan, threads: usize) -> Result<(f64, f64, (f64, f64))> {
     let whole = alone(model, plan)?;

@@ -12,8 +12,11 @@ pub fn render(suite: &str, checks: &[Check], seconds: f64) -> String {
     for c in checks {
         let relation = if c.kind == "max" { "<=" } else { ">=" };
         xml += &format!("    <testcase classname=\"pdi-compile.verify\" name=\"{}\">", escape(&c.name));
-        if !c.passed {
-            xml += &format!("<failure message=\"{}\"/>", escape(&format!("{} = {} (required {relation} {})", c.name, c.value, c.threshold)));
+        match (c.value, &c.unmeasured) {
+            (Some(v), _) if !c.passed => xml += &format!("<failure message=\"{}\"/>", escape(&format!("{} = {v} (required {relation} {})", c.name, c.threshold))),
+            (None, Some(why)) if c.allowed => xml += &format!("<skipped message=\"{}\"/>", escape(&format!("not measured ({why}); allowed by --allow-unmeasured {}", c.key))),
+            (None, why) => xml += &format!("<failure message=\"{}\"/>", escape(&format!("not measured: {}", why.as_deref().unwrap_or("no value")))),
+            _ => {}
         }
         xml += "</testcase>\n";
     }
@@ -31,11 +34,22 @@ mod tests {
 
     #[test]
     fn failures_are_elements_and_names_are_escaped() {
-        let checks = vec![Check::max("rel_l2 <det>", 0.5, 0.1), Check::min("cosine", 1.0, 0.99)];
+        let checks = vec![Check::max("max_rel_l2", "rel_l2 <det>", 0.5, 0.1), Check::min("min_cosine", "cosine", 1.0, 0.99)];
         let xml = render("m&m", &checks, 1.0);
         assert!(xml.contains("tests=\"2\" failures=\"1\""));
         assert!(xml.contains("name=\"rel_l2 &lt;det&gt;\"><failure message=\"rel_l2 &lt;det&gt; = 0.5 (required &lt;= 0.1)\"/></testcase>"));
         assert!(xml.contains("name=\"cosine\"></testcase>"));
         assert!(xml.contains("testsuite name=\"m&amp;m\""));
+    }
+
+    #[test]
+    fn an_unmeasured_check_fails_with_its_reason_unless_allowed() {
+        let mut checks = vec![Check::unmeasured("max_map_drop", "drop", "max", 0.01, "no labels")];
+        let xml = render("m", &checks, 1.0);
+        assert!(xml.contains("failures=\"1\"") && xml.contains("<failure message=\"not measured: no labels\"/>"), "{xml}");
+        crate::verify::gate::allow_unmeasured(&mut checks, &["max_map_drop".into()], crate::verify::gate::KEYS).unwrap();
+        let xml = render("m", &checks, 1.0);
+        assert!(xml.contains("failures=\"0\"") && xml.contains("<skipped message=\"not measured (no labels); allowed by --allow-unmeasured max_map_drop\"/>"), "{xml}");
+        assert!(crate::verify::gate::allow_unmeasured(&mut checks, &["max_map_dorp".into()], crate::verify::gate::KEYS).is_err());
     }
 }

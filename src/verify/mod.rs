@@ -280,7 +280,11 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
     let latency_ratio = (latency.len() >= 2).then(|| latency[1].median_ms / latency[0].median_ms);
     let tract_vs_ort_ratio = (latency.len() >= 3).then(|| latency[2].median_ms / latency[1].median_ms);
 
-    let checks = req.gate.as_ref().map(|g| checks(g, &outputs, detection.as_ref(), latency_ratio)).unwrap_or_default();
+    let mut checks = Vec::new();
+    if let Some(g) = &req.gate {
+        checks = self::checks(g, &outputs, detection.as_ref(), latency_ratio, req.tract);
+        gate::allow_unmeasured(&mut checks, &g.allow_unmeasured, gate::KEYS)?;
+    }
     let passed = checks.iter().all(|c| c.passed);
     Ok(VerifyReport {
         reference: req.reference.display().to_string(),
@@ -360,29 +364,51 @@ fn same_detections(a: &[Vec<Detection>], b: &[Vec<Detection>]) -> bool {
     a.len() == b.len() && a.iter().zip(b).all(|(x, y)| confident(x) == confident(y))
 }
 
-fn checks(g: &Gate, outputs: &[OutputReport], det: Option<&DetectionReport>, latency_ratio: Option<f64>) -> Vec<Check> {
+fn checks(g: &Gate, outputs: &[OutputReport], det: Option<&DetectionReport>, latency_ratio: Option<f64>, tract_ran: bool) -> Vec<Check> {
     let mut c = Vec::new();
     for o in outputs {
         if let Some(t) = g.max_rel_l2 {
-            c.push(Check::max(format!("{}: rel L2 (ort)", o.name), o.ort.rel_l2, t));
+            c.push(Check::max("max_rel_l2", format!("{}: rel L2 (ort)", o.name), o.ort.rel_l2, t));
         }
         if let Some(t) = g.min_cosine {
-            c.push(Check::min(format!("{}: cosine (ort)", o.name), o.ort.cosine, t));
+            c.push(Check::min("min_cosine", format!("{}: cosine (ort)", o.name), o.ort.cosine, t));
         }
-        if let (Some(t), Some(e)) = (g.max_rel_l2_tract, o.tract) {
-            c.push(Check::max(format!("{}: rel L2 (tract vs ort)", o.name), e.rel_l2, t));
-        }
-    }
-    if let Some(d) = det {
-        if let Some(t) = g.min_map_agreement {
-            c.push(Check::min("mAP@.5:.95 agreement with the reference", d.agreement.map50_95, t));
-        }
-        if let (Some(t), Some(r), Some(k)) = (g.max_map_drop, &d.reference_vs_labels, &d.candidate_vs_labels) {
-            c.push(Check::max("mAP@.5:.95 drop against labels", r.map50_95 - k.map50_95, t));
+        match (g.max_rel_l2_tract, o.tract) {
+            (Some(t), Some(e)) => c.push(Check::max("max_rel_l2_tract", format!("{}: rel L2 (tract vs ort)", o.name), e.rel_l2, t)),
+            (Some(t), None) => {
+                let why = if tract_ran { "tract did not produce this output" } else { "tract was not run (--no-tract)" };
+                c.push(Check::unmeasured("max_rel_l2_tract", format!("{}: rel L2 (tract vs ort)", o.name), "max", t, why));
+            }
+            _ => {}
         }
     }
-    if let (Some(t), Some(r)) = (g.max_latency_ratio, latency_ratio) {
-        c.push(Check::max("latency ratio candidate/reference (ort)", r, t));
+    let agreement = "mAP@.5:.95 agreement with the reference";
+    let drop = "mAP@.5:.95 drop against labels";
+    match det {
+        Some(d) => {
+            if let Some(t) = g.min_map_agreement {
+                c.push(Check::min("min_map_agreement", agreement, d.agreement.map50_95, t));
+            }
+            match (g.max_map_drop, &d.reference_vs_labels, &d.candidate_vs_labels) {
+                (Some(t), Some(r), Some(k)) => c.push(Check::max("max_map_drop", drop, r.map50_95 - k.map50_95, t)),
+                (Some(t), _, _) => c.push(Check::unmeasured("max_map_drop", drop, "max", t, "the frames have no labels (give --data a folder with YOLO .txt labels beside its frames)")),
+                _ => {}
+            }
+        }
+        None => {
+            let why = "the reference has no decoded detection output to score";
+            if let Some(t) = g.min_map_agreement {
+                c.push(Check::unmeasured("min_map_agreement", agreement, "min", t, why));
+            }
+            if let Some(t) = g.max_map_drop {
+                c.push(Check::unmeasured("max_map_drop", drop, "max", t, why));
+            }
+        }
+    }
+    match (g.max_latency_ratio, latency_ratio) {
+        (Some(t), Some(r)) => c.push(Check::max("max_latency_ratio", "latency ratio candidate/reference (ort)", r, t)),
+        (Some(t), None) => c.push(Check::unmeasured("max_latency_ratio", "latency ratio candidate/reference (ort)", "max", t, "no timed runs")),
+        _ => {}
     }
     c
 }
@@ -424,7 +450,7 @@ impl VerifyReport {
             let _ = writeln!(s, "  latency ratio candidate tract/ORT: {r:.3}");
         }
         for c in &self.checks {
-            let _ = writeln!(s, "  [{}] {} = {:.4e} ({} {:.4e})", if c.passed { "pass" } else { "FAIL" }, c.name, c.value, c.kind, c.threshold);
+            let _ = writeln!(s, "  {}", c.line());
         }
         if !self.checks.is_empty() {
             let _ = writeln!(s, "{}", if self.passed { "gate passed" } else { "gate FAILED" });

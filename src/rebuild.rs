@@ -1,0 +1,135 @@
+//! `pdi-compile rebuild DIR -o DIR2`: compiles again from DIR's manifest alone (the input and
+//! the files the compile read, checked against their recorded hashes; the recipe with every
+//! option resolved; the scene, target and threads; the tract target's timed choices reused)
+//! and compares. On the host that built DIR (same CPU and core count) a reproducible build
+//! must give the same model bytes; elsewhere, or when DIR's training was stopped by its time
+//! cap, the two models are compared by `verify`, and the report says which comparison it made.
+
+use crate::compile::{compile_recipe, CompileRequest};
+use crate::manifest::{self, Hashed, Host};
+use crate::pipeline::PassContext;
+use anyhow::{bail, Result};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+pub struct RebuildRequest {
+    pub dir: PathBuf,
+    pub out: PathBuf,
+    /// Frames for the `verify` comparison (simulated when None).
+    pub data: Option<PathBuf>,
+}
+
+#[derive(Serialize)]
+pub struct RebuildReport {
+    pub from: String,
+    pub to: String,
+    /// `bytes` (same host, reproducible build) or `verify` (and why).
+    pub compared_by: String,
+    pub original_sha256: String,
+    pub rebuilt_sha256: String,
+    pub identical: bool,
+    /// With `verify`: the worst output rel L2 and lowest cosine against the first build on
+    /// ONNX Runtime, and the detections' agreement mAP@0.5:0.95.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub worst_rel_l2: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub min_cosine: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub agreement: Option<f64>,
+    /// Whether the rebuild holds: identical bytes when compared by bytes; with `verify`, it
+    /// is a measurement, and passes.
+    pub passed: bool,
+}
+
+pub fn rebuild(req: &RebuildRequest) -> Result<RebuildReport> {
+    let m = manifest::load(&req.dir)?;
+    let input = PathBuf::from(&m.input);
+    let sha = manifest::sha256_file(&input).map_err(|_| anyhow::anyhow!("the input {} that {} was built from is not there (paths are as the first compile was given them: run rebuild from the same folder)", m.input, req.dir.display()))?;
+    if sha != m.input_sha256 {
+        bail!("the input {} changed since {} was built (sha256 {} now, {} then)", m.input, req.dir.display(), &sha[..12], &m.input_sha256[..12.min(m.input_sha256.len())]);
+    }
+    let same_file = |recorded: &Option<Hashed>, what: &str| -> Result<Option<PathBuf>> {
+        let Some(r) = recorded else { return Ok(None) };
+        let now = Hashed::of(Path::new(&r.path)).map_err(|e| anyhow::anyhow!("{what} {}: {e:#}", r.path))?;
+        if now.sha256 != r.sha256 {
+            bail!("{what} {} changed since {} was built ({} file(s) then, {} now)", r.path, req.dir.display(), r.files, now.files);
+        }
+        Ok(Some(PathBuf::from(&r.path)))
+    };
+    let psf = same_file(&m.inputs.psf, "--psf")?;
+    let calib = same_file(&m.inputs.calib, "--calib")?;
+    let decisions = (m.target == crate::targets::Target::Tract).then(|| m.target_check.as_ref().map(crate::targets::tract::Decisions::recorded)).flatten();
+    let compile = CompileRequest {
+        model: input,
+        pipeline: PathBuf::from(&m.pipeline_file),
+        out_dir: req.out.clone(),
+        external_data: m.external_data,
+        context: PassContext { psf: psf.clone(), calib, keep_outputs: m.inputs.keep_outputs.clone(), scene: m.inputs.scene.clone(), ..Default::default() },
+        target: m.target,
+        threads: m.threads,
+        decisions,
+    };
+    // The manifest's recipe already has the scene's passes in place; with_scene keeps them.
+    compile_recipe(&compile, m.pipeline.clone())?;
+    let original = req.dir.join(&m.model);
+    let rebuilt = req.out.join("model.onnx");
+    let rebuilt_sha256 = manifest::sha256_file(&rebuilt)?;
+    let identical = rebuilt_sha256 == m.model_sha256;
+    let same_host = Host::this() == m.host;
+    let base = RebuildReport {
+        from: req.dir.display().to_string(),
+        to: req.out.display().to_string(),
+        compared_by: String::new(),
+        original_sha256: m.model_sha256.clone(),
+        rebuilt_sha256,
+        identical,
+        worst_rel_l2: None,
+        min_cosine: None,
+        agreement: None,
+        passed: identical,
+    };
+    if same_host && m.reproducible {
+        return Ok(RebuildReport { compared_by: format!("bytes: the same host ({}, {} cores) and a reproducible build", m.host.cpu, m.host.cores), ..base });
+    }
+    let why = if !m.reproducible { format!("verify: the first build was not reproducible ({})", m.not_reproducible.join("; ")) } else { format!("verify: built on another host ({}, {} cores; this one: {}, {} cores)", m.host.cpu, m.host.cores, Host::this().cpu, Host::this().cores) };
+    let v = crate::verify::verify(&crate::verify::VerifyRequest {
+        reference: original,
+        candidate: rebuilt,
+        data: req.data.clone(),
+        random: 8,
+        psf,
+        gate: None,
+        latency_runs: 0,
+        tract: false,
+        seed: 0,
+        threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+    })?;
+    Ok(RebuildReport {
+        compared_by: why,
+        worst_rel_l2: Some(v.outputs.iter().map(|o| o.ort.rel_l2).fold(0.0, f64::max)),
+        min_cosine: Some(v.outputs.iter().map(|o| o.ort.cosine).fold(1.0, f64::min)),
+        agreement: v.detection.as_ref().map(|d| d.agreement.map50_95),
+        passed: true,
+        ..base
+    })
+}
+
+impl RebuildReport {
+    pub fn render(&self) -> String {
+        let mut s = format!("rebuilt {} -> {}\n  compared by {}\n", self.from, self.to, self.compared_by);
+        if self.identical {
+            s += &format!("  model.onnx identical (sha256 {})\n", &self.rebuilt_sha256[..16]);
+        } else {
+            s += &format!("  model.onnx differs: sha256 {} then, {} now\n", &self.original_sha256[..16.min(self.original_sha256.len())], &self.rebuilt_sha256[..16]);
+        }
+        if let (Some(e), Some(c)) = (self.worst_rel_l2, self.min_cosine) {
+            s += &format!("  against the first build on ONNX Runtime: worst output rel L2 {e:.3e}, lowest cosine {c:.6}");
+            if let Some(a) = self.agreement {
+                s += &format!(", detections' agreement mAP@.5:.95 {a:.4}");
+            }
+            s += "\n";
+        }
+        s += if self.passed { "rebuild holds\n" } else { "rebuild FAILED: the same host and recipe gave other bytes\n" };
+        s
+    }
+}
