@@ -70,7 +70,7 @@ pub fn rebuild(req: &RebuildRequest) -> Result<RebuildReport> {
         decisions,
     };
     // The manifest's recipe already has the scene's passes in place; with_scene keeps them.
-    compile_recipe(&compile, m.pipeline.clone())?;
+    compile_recipe(&compile, with_recorded_ratios(&m)?)?;
     let original = req.dir.join(&m.model);
     let rebuilt = req.out.join("model.onnx");
     let rebuilt_sha256 = manifest::sha256_file(&rebuilt)?;
@@ -112,6 +112,33 @@ pub fn rebuild(req: &RebuildRequest) -> Result<RebuildReport> {
         passed: true,
         ..base
     })
+}
+
+/// The manifest's recipe with each `prune: {target: {latency}}` replaced by the per-group
+/// ratios that build's timing chose (its report's sensitivity groups), so that the rebuild
+/// does not time again.
+fn with_recorded_ratios(m: &manifest::Manifest) -> Result<crate::pipeline::Recipe> {
+    let mut recipe = m.pipeline.clone();
+    let reports: Vec<&serde_json::Value> = m.passes.iter().collect();
+    if reports.len() != recipe.passes.len() {
+        bail!("{} lists {} pass reports for {} passes: not a manifest this version wrote", m.pipeline_file, reports.len(), recipe.passes.len());
+    }
+    for (spec, report) in recipe.passes.iter_mut().zip(reports) {
+        let timed = spec.options.get("target").and_then(|t| t.get("latency")).is_some_and(|l| !l.is_null());
+        if spec.name != "prune" || !timed {
+            continue;
+        }
+        let groups = report["details"]["sensitivity"]["groups"].as_array().ok_or_else(|| anyhow::anyhow!("the recorded prune report has no sensitivity groups to reuse"))?;
+        let mut ratios = yaml_serde::Mapping::new();
+        for g in groups.iter().filter(|g| g["chosen"].as_f64().is_some_and(|c| c > 0.0)) {
+            ratios.insert(g["anchor"].as_str().unwrap_or_default().into(), g["chosen"].as_f64().unwrap_or_default().into());
+        }
+        if let yaml_serde::Value::Mapping(o) = &mut spec.options {
+            o.insert("target".into(), yaml_serde::Value::Null);
+            o.insert("ratios".into(), yaml_serde::Value::Mapping(ratios));
+        }
+    }
+    Ok(recipe)
 }
 
 impl RebuildReport {

@@ -16,8 +16,15 @@ fn bench_measures_every_variant_and_marks_the_pareto_front() {
     names.sort();
     // tract emulates f16 off aarch64: those rows are named as not measured instead.
     let tract_fp16 = cfg!(target_arch = "aarch64");
+    // A variant past its hard limit is listed as failed, with no row and no artifact: this
+    // fixture's random weights leave its unpruned INT8 classes at cosine 0.35 against float.
+    let failed: Vec<&str> = report["failed"].as_array().unwrap().iter().map(|f| f.as_str().unwrap()).collect();
+    for f in &failed {
+        assert!(f.starts_with("int8: ") && f.contains("INT8 broke the model"), "only INT8 may fail its hard limit: {f}");
+        assert!(!out.join("variants/int8").exists(), "no artifact for a failed variant");
+    }
     let mut expected = vec!["original/ort".to_string()];
-    for v in ["f32", "fp16", "int8", "pruned-norecover-f32", "pruned-f32", "pruned-fp16", "pruned-int8"] {
+    for v in ["f32", "fp16", "int8", "pruned-norecover-f32", "pruned-f32", "pruned-fp16", "pruned-int8"].into_iter().filter(|v| !failed.iter().any(|f| f.starts_with(&format!("{v}: ")))) {
         expected.push(format!("{v}/ort"));
         if tract_fp16 || !v.ends_with("fp16") {
             expected.push(format!("{v}/tract"));

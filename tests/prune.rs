@@ -231,3 +231,25 @@ fn negative_channel_axis_is_the_channel_axis() {
     let a = pdi_compile::analysis::channels::analyse(&graph, &inf, &[]);
     assert!(a.groups.iter().all(|gr| gr.frozen.as_deref().is_none_or(|w| !w.contains("Concat"))), "a channel concat is analysed");
 }
+
+/// A latency target is a choice made by timing: the build records the per-group ratios it
+/// chose, and a rebuild prunes to those ratios instead of timing again, giving the same bytes.
+#[test]
+fn a_rebuild_reuses_the_ratios_a_latency_target_chose() {
+    let dir = tempfile::tempdir().unwrap();
+    let recipe = dir.path().join("latency.yaml");
+    std::fs::write(&recipe, "name: latency\npasses: [promote-constants, strip-recon, bind-psf, fold-constants, fold-psf-gates, fold-bn, dce, {prune: {target: {latency: 0.5}, compensate: none}}]\n").unwrap();
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    let r = cli(&["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", a.to_str().unwrap(), "--json"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    // How far timing took the greedy depends on the machine (a noisy one can even meet the
+    // target at once); whatever it chose is what the rebuild must reuse.
+    let chosen = report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == "prune").unwrap()["details"]["sensitivity"]["groups"].as_array().unwrap().iter().filter(|g| g["chosen"].as_f64().unwrap() > 0.0).count();
+    let r = cli(&["rebuild", a.to_str().unwrap(), "-o", b.to_str().unwrap(), "--json"]);
+    assert_eq!(r.code, 0, "{}\n{}", r.stdout, r.stderr);
+    assert_eq!(std::fs::read(a.join("model.onnx")).unwrap(), std::fs::read(b.join("model.onnx")).unwrap());
+    let manifest: serde_json::Value = yaml_serde::from_str(&std::fs::read_to_string(b.join("manifest.yaml")).unwrap()).unwrap();
+    let prune = manifest["pipeline"]["passes"].as_array().unwrap().iter().find(|p| p["name"] == "prune").unwrap().clone();
+    assert!(prune["options"]["target"].is_null() && prune["options"]["ratios"].as_object().unwrap().len() == chosen, "{prune}");
+}

@@ -102,7 +102,9 @@ fn relus_fused_exactly(fused: u64, path: &Path) {
 #[test]
 fn int8_fixtures_fuse_into_integer_kernels_and_stay_close_per_channel_group() {
     let dir = tempfile::tempdir().unwrap();
-    let recipe = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 16");
+    // The fixtures' random weights leave INT8 objectness at cosine ~0.7 against float: this
+    // test is about the kernels ORT fuses, so the hard limit is lifted (it has its own test).
+    let recipe = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 16, hard_limit: {max_rel_l2: 1.0e9, min_cosine: -1}");
     for fixture in [V5, V8] {
         let out = dir.path().join(Path::new(fixture).file_stem().unwrap());
         let q = compile(fixture, &recipe, &out, &[]);
@@ -137,7 +139,9 @@ fn int8_fixtures_fuse_into_integer_kernels_and_stay_close_per_channel_group() {
 #[test]
 fn degenerate_calibration_sets_give_finite_scales_or_a_clear_refusal() {
     let dir = tempfile::tempdir().unwrap();
-    let recipe = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 4, analysis_frames: 2, held_out_frames: 2");
+    // Frames this unlike the model's input give an INT8 model past the hard limit (exit 1,
+    // its own test); here the scales are what is checked, so the limit is lifted.
+    let recipe = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 4, analysis_frames: 2, held_out_frames: 2, hard_limit: {max_rel_l2: 1.0e9, min_cosine: -1}");
     let (w, h) = (256, 192);
     let (zeros, dark, outliers) = (dir.path().join("zeros"), dir.path().join("dark"), dir.path().join("outliers"));
     for d in [&zeros, &dark, &outliers] {
@@ -516,9 +520,9 @@ fn int8_past_its_hard_limit_fails_and_a_missed_budget_warns() {
     assert_eq!(r.code, 0, "{}", r.stderr);
     assert!(r.stderr.contains("INT8 missed its error budget") && r.stderr.contains("its detections will move"), "{}", r.stderr);
     assert!(out.join("model.onnx").exists());
-    // A budget beyond the limit cannot be aimed at: refused when the recipe loads.
-    let wrong = variant(dir.path(), &fast, "error_budget: 0.1", "error_budget: 2.0");
+    // A limit out of range is refused when the recipe loads, before calibration.
+    let wrong = variant(dir.path(), &fast, "error_budget: 0.1", "hard_limit: {min_cosine: 1.5}");
     let r = run_compile(TINY, &wrong, &dir.path().join("wrong"), &[]);
     assert_eq!(r.code, 2, "{}", r.stderr);
-    assert!(r.stderr.contains("beyond hard_limit"), "{}", r.stderr);
+    assert!(r.stderr.contains("hard_limit needs") && r.stderr.trim().lines().count() == 1, "{}", r.stderr);
 }

@@ -96,7 +96,7 @@ fn recover_needs_a_prune_pass() {
     std::fs::write(&recipe, format!("name: r\npasses: [{LOSSLESS}, recover]\n")).unwrap();
     let r = cli(&["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", dir.path().join("o").to_str().unwrap()]);
     assert_eq!(r.code, 2, "{}", r.stderr);
-    assert!(r.stderr.contains("put a prune pass before it"), "{}", r.stderr);
+    assert!(r.stderr.contains("recover: needs teacher from an earlier pass: put prune") && r.stderr.trim().lines().count() == 1, "{}", r.stderr);
     assert!(!dir.path().join("o/model.onnx").exists(), "nothing written");
 }
 
@@ -105,13 +105,14 @@ fn recover_needs_a_prune_pass() {
 #[test]
 fn impossible_recover_settings_are_refused() {
     let dir = tempfile::tempdir().unwrap();
-    for setting in ["box_edges: -1", "box_edges: .inf", "class_foreground: -2", "class_foreground: .nan", "lr: .nan", "batch: 0"] {
+    let weights = "box_edges and class_foreground must be finite and 0 or more";
+    for (setting, needle) in [("box_edges: -1", weights), ("box_edges: .inf", weights), ("class_foreground: -2", weights), ("class_foreground: .nan", weights), ("lr: .nan", "lr must be a positive number"), ("batch: 0", "steps and batch must be at least 1")] {
         let recipe = dir.path().join("r.yaml");
         std::fs::write(&recipe, format!("name: r\npasses: [{LOSSLESS}, {{prune: {{ratio: 0.5, compensate: none}}}}, {{recover: {{{setting}}}}}, cleanup]\n")).unwrap();
         let out = dir.path().join("o");
         let r = cli(&["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap()]);
         assert_eq!(r.code, 2, "{setting}: {}", r.stderr);
-        assert!(r.stderr.contains("recover needs frames >= batch > 0") && r.stderr.trim().lines().count() == 1, "{setting}: {}", r.stderr);
+        assert!(r.stderr.contains(needle) && r.stderr.trim().lines().count() == 1, "{setting}: {}", r.stderr);
         assert!(!out.join("model.onnx").exists(), "{setting}: nothing written");
     }
 }

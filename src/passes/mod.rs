@@ -38,7 +38,8 @@ pub struct Built {
 
 pub fn build(spec: &PassSpec) -> Result<Built> {
     let plain = |pass: Box<dyn Pass>| -> Result<Built> {
-        if !spec.options.is_null() {
+        let empty = spec.options.as_mapping().is_some_and(|m| m.is_empty());
+        if !spec.options.is_null() && !empty {
             bail!("pass {} takes no options", spec.name);
         }
         Ok(Built { pass, options: yaml_serde::Value::Null })

@@ -54,6 +54,10 @@ pub struct Options {
     pub target: Option<Target>,
     /// Calibration frames the sensitivity of each group is measured on.
     pub sensitivity_frames: usize,
+    /// Per-group ratios given outright (group anchor -> ratio; groups not named stay whole),
+    /// instead of `ratio` or `target`: what `rebuild` puts in place of a latency target, the
+    /// ratios the timed build chose, so that the rebuild does not time again.
+    pub ratios: Option<std::collections::BTreeMap<String, f64>>,
 }
 
 /// What sensitivity-guided pruning must reach, as a fraction of the unpruned model: one of
@@ -69,7 +73,7 @@ pub struct Target {
 
 impl Default for Options {
     fn default() -> Self {
-        Options { ratio: 0.5, importance: Criterion::L1, scope: Scope::Uniform, round_to: 8, compensate: Mode::Lstsq, calib_frames: 12, ridge: 1e-3, ignore: Vec::new(), seed: 0, target: None, sensitivity_frames: 4 }
+        Options { ratio: 0.5, importance: Criterion::L1, scope: Scope::Uniform, round_to: 8, compensate: Mode::Lstsq, calib_frames: 12, ridge: 1e-3, ignore: Vec::new(), seed: 0, target: None, sensitivity_frames: 4, ratios: None }
     }
 }
 
@@ -92,11 +96,26 @@ impl Pass for Prune {
         vec![crate::pipeline::Capability::Teacher]
     }
 
-    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+    fn check(&self) -> Result<()> {
         let o = &self.options;
         if !(0.0..1.0).contains(&o.ratio) {
             bail!("prune ratio {} must be in [0, 1)", o.ratio);
         }
+        if let Some((g, r)) = o.ratios.iter().flatten().find(|(_, r)| !(0.0..1.0).contains(*r)) {
+            bail!("prune ratios: {g}'s {r} must be in [0, 1)");
+        }
+        if o.target.is_some() && o.ratios.is_some() {
+            bail!("prune takes a target or ratios, not both");
+        }
+        match o.target {
+            Some(Target { macs: Some(f), latency: None }) | Some(Target { macs: None, latency: Some(f) }) if !(f > 0.0 && f <= 1.0) => bail!("prune target {f} must be a fraction in (0, 1] of the unpruned model"),
+            Some(Target { macs: Some(_), latency: Some(_) }) | Some(Target { macs: None, latency: None }) => bail!("prune target: give exactly one of macs or latency (a fraction of the unpruned model), e.g. target: {{macs: 0.3}}"),
+            _ => Ok(()),
+        }
+    }
+
+    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+        let o = &self.options;
         let mut clock = Clock::default();
         let original = model.clone();
         let g = original.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
@@ -121,9 +140,11 @@ impl Pass for Prune {
         };
         clock.lap("frames_and_importance");
         let opset = crate::onnx::edit::default_opset(model).unwrap_or(13);
-        let (per_group, sensitivity) = match o.target {
-            None => (None, None),
-            Some(target) => {
+        let (per_group, sensitivity) = match (o.target, &o.ratios) {
+            (Some(_), Some(_)) => bail!("prune takes a target or ratios, not both"),
+            (None, Some(r)) => (Some(r.iter().map(|(k, v)| (k.clone(), *v)).collect()), None),
+            (None, None) => (None, None),
+            (Some(target), None) => {
                 let feeds = feeds.get(..o.sensitivity_frames.min(feeds.len())).filter(|f| !f.is_empty()).ok_or_else(|| anyhow!("a pruning target needs calibration frames: {source}"))?;
                 let (ratios, report) = allocate(&original, &analysis, &scores, o, opset, target, feeds)?;
                 (Some(ratios), Some(report))

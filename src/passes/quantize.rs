@@ -178,18 +178,15 @@ impl Options {
         if !(50.0..=100.0).contains(&self.percentile) {
             bail!("percentile {} must be between 50 and 100", self.percentile);
         }
-        if self.error_budget.is_some_and(|b| !(b > 0.0 && b.is_finite())) {
-            bail!("error_budget must be a positive number");
+        if self.error_budget.is_some_and(|b| !(b >= 0.0 && b.is_finite())) {
+            bail!("error_budget must be a number, 0 or more");
         }
         let HardLimit { max_rel_l2, min_cosine } = self.hard_limit;
         if !(max_rel_l2 > 0.0 && max_rel_l2.is_finite()) || !(-1.0..=1.0).contains(&min_cosine) {
             bail!("hard_limit needs max_rel_l2 > 0 and min_cosine in [-1, 1]");
         }
-        if self.error_budget.is_some_and(|b| b > max_rel_l2) {
-            bail!("error_budget {} is beyond hard_limit's max_rel_l2 {max_rel_l2}: the budget must aim inside the limit", self.error_budget.unwrap_or_default());
-        }
         if let Some(q) = &self.qat {
-            crate::prune::recover::check_schedule("qat", q.steps, q.minutes, q.lr, q.batch)?;
+            crate::prune::recover::check_schedule("qat: ", q.steps, q.minutes, q.lr, q.batch)?;
             if !(q.scale_lr > 0.0 && q.scale_lr.is_finite()) {
                 bail!("qat: scale_lr must be a positive number");
             }

@@ -73,15 +73,15 @@ pub enum Train {
 impl Options {
     /// The ranges, checked when the recipe loads.
     pub fn check(&self) -> Result<()> {
-        crate::prune::recover::check_schedule("recover", self.steps, self.minutes, self.lr, self.batch)?;
+        crate::prune::recover::check_schedule("", self.steps, self.minutes, self.lr, self.batch)?;
         if self.frames < self.batch {
-            bail!("recover: frames ({}) must be at least batch ({})", self.frames, self.batch);
+            bail!("frames ({}) must be at least batch ({})", self.frames, self.batch);
         }
         if self.warmup >= self.steps {
-            bail!("recover: warmup ({}) must be fewer than steps ({})", self.warmup, self.steps);
+            bail!("warmup ({}) must be fewer than steps ({})", self.warmup, self.steps);
         }
         if ![self.box_edges, self.class_foreground].iter().all(|w| *w >= 0.0 && w.is_finite()) {
-            bail!("recover: box_edges and class_foreground must be finite and 0 or more");
+            bail!("box_edges and class_foreground must be finite and 0 or more");
         }
         Ok(())
     }

@@ -64,7 +64,7 @@ pub struct Options {
 impl Options {
     /// The ranges, checked when the recipe loads.
     pub fn check(&self) -> Result<()> {
-        crate::prune::recover::check_schedule("rknn-qat", self.steps, self.minutes, self.lr, self.batch)?;
+        crate::prune::recover::check_schedule("", self.steps, self.minutes, self.lr, self.batch)?;
         if self.frames < self.batch {
             bail!("rknn-qat has {} frames for batches of {}; raise frames or lower batch", self.frames, self.batch);
         }

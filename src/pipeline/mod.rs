@@ -188,7 +188,7 @@ pub struct PassReport {
 
 /// Runs every pass of `recipe` on `model` in order.
 pub fn run(recipe: &Recipe, model: &mut ModelProto, cx: &PassContext) -> Result<Vec<PassReport>> {
-    let passes: Vec<(Box<dyn Pass>, &PassSpec)> = recipe.passes.iter().map(|s| Ok((build_pass(s)?, s))).collect::<Result<_>>()?;
+    let passes: Vec<(Box<dyn Pass>, &PassSpec)> = recipe.passes.iter().map(|s| Ok((build_pass(s).with_context(|| format!("pass {}", s.name))?, s))).collect::<Result<_>>()?;
     let mut reports = Vec::new();
     let mut before = counts(model)?;
     for (pass, spec) in passes {

@@ -62,17 +62,18 @@ pub struct Outcome {
     pub torch: String,
 }
 
-/// Checks the schedule every training pass shares (`pass` names it in the message).
-pub fn check_schedule(pass: &str, steps: usize, minutes: Option<f64>, lr: f64, batch: usize) -> Result<()> {
+/// Checks the schedule every training pass shares; `within` prefixes the message where the
+/// schedule is a sub-option (`qat: `), the pass name being the error's context.
+pub fn check_schedule(within: &str, steps: usize, minutes: Option<f64>, lr: f64, batch: usize) -> Result<()> {
     if steps == 0 || batch == 0 {
-        bail!("{pass}: steps and batch must be at least 1");
+        bail!("{within}steps and batch must be at least 1");
     }
     // `!(x > 0)` refuses NaN too.
     if !(lr > 0.0 && lr.is_finite()) {
-        bail!("{pass}: lr must be a positive number");
+        bail!("{within}lr must be a positive number");
     }
     if minutes.is_some_and(|m| !(m > 0.0 && m.is_finite())) {
-        bail!("{pass}: minutes (a time cap) must be a positive number");
+        bail!("{within}minutes (a time cap) must be a positive number");
     }
     Ok(())
 }
