@@ -178,7 +178,7 @@ fn mixed_precision_keeps_the_most_sensitive_layers_float_until_the_budget_holds(
     let kept = q["mixed_precision"]["kept_float"].as_array().unwrap();
     let rejected = q["mixed_precision"]["tried_and_rejected"].as_array().unwrap();
     assert_eq!(kept.len() + rejected.len(), 3, "three layers tried: {}", q["mixed_precision"]);
-    assert!(q["warnings"].to_string().contains("not met"));
+    assert!(q["warnings"].to_string().contains("INT8 missed its error budget") && q["mixed_precision"]["note"].as_str().unwrap().contains("not met"), "{}", q["warnings"]);
     for k in kept {
         assert!(k["output_rel_l2_after"].as_f64().unwrap() < k["output_rel_l2_before"].as_f64().unwrap(), "a kept layer helped: {k}");
     }
@@ -403,7 +403,10 @@ fn reproduces_fake_quant(qat: &serde_json::Value) {
 fn quantization_aware_recovery_can_distill_from_the_unpruned_model() {
     let dir = tempfile::tempdir().unwrap();
     let quantize = "calib_frames: 64, bias_correction: true, error_budget: 0.1";
-    let qat = "calib_frames: 32, bias_correction: true, error_budget: 10.0, qat: {teacher: original, steps: 24, minutes: 10, lr: 2.0e-3, batch: 8, frames: 48}";
+    // Pruned to 28% without recovery, the model is past INT8's hard limit against both its
+    // float model and the original (objectness rel L2 1.6); this test is about QAT's teacher,
+    // so the limit is lifted.
+    let qat = "calib_frames: 32, bias_correction: true, error_budget: 10.0, hard_limit: {max_rel_l2: 1.0e9, min_cosine: -1}, qat: {teacher: original, steps: 24, minutes: 10, lr: 2.0e-3, batch: 8, frames: 48}";
     let pruned = variant(dir.path(), "passes/detect-pruned-int8-norecover.yaml", quantize, qat);
     let r = compile(TINY, &pruned, &dir.path().join("qat"), &[])["qat"].clone();
     println!("{}", serde_json::to_string_pretty(&r).unwrap());
@@ -418,7 +421,7 @@ fn quantization_aware_recovery_can_distill_from_the_unpruned_model() {
 
     let unpruned = variant(dir.path(), "passes/detect-int8.yaml", "error_budget: 0.1", "error_budget: 0.1, qat: {teacher: original}");
     let stderr = refused(TINY, &unpruned, &dir.path().join("refused"), &[]);
-    assert!(stderr.contains("teacher: original") && stderr.contains("prune"), "{stderr}");
+    assert!(stderr.contains("quantize: needs teacher from an earlier pass") && stderr.contains("prune"), "{stderr}");
 }
 
 /// QAT with `scales: true` trains the activation scales too (LSQ). The written model still

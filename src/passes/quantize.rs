@@ -346,6 +346,7 @@ impl Pass for Quantize {
         };
         clock.lap("float_where_faster");
         // QAT measures the model it keeps on the held-out frames; those errors are reported below.
+        // The errors QAT measured against its teacher, and whether that teacher is the float model.
         let (quantized, qat, kept_errors) = match &o.qat {
             None => (quantized, None, None),
             Some(q) => {
@@ -357,7 +358,7 @@ impl Pass for Quantize {
                 let train = feeds.iter().map(|f| f[0].1.clone()).chain(more.into_iter().filter_map(|f| f.into_iter().next().map(|(_, t)| t))).collect();
                 let groups = if q.scales { crate::quant::qat::scale_groups(&quantized, &emitted.dequantized, |v| current.root(v).to_string()) } else { Vec::new() };
                 let (model, report, errors) = quantization_aware(&float, original.as_ref(), quantized, train, &held_out, o, q, groups, threads)?;
-                (model, Some(report), errors)
+                (model, Some(report), Some((errors, original.is_none())))
             }
         };
         clock.lap("qat");
@@ -369,16 +370,26 @@ impl Pass for Quantize {
         layers.retain(|l| current.quantized.contains(&alone.node_of_value[&l.value]));
         layers.sort_by(|a, b| b.accumulated.map_or(b.alone.rel_l2, |e| e.rel_l2).total_cmp(&a.accumulated.map_or(a.alone.rel_l2, |e| e.rel_l2)));
         clock.lap("accumulated_errors");
-        let outputs = match kept_errors {
-            Some(errors) => errors,
-            None => attribution::output_errors(&float, &quantized, &held_out, threads, None)?,
+        let (outputs, from_original) = match kept_errors {
+            Some((errors, true)) => (errors, None),
+            Some((errors, false)) => (attribution::output_errors(&float, &quantized, &held_out, threads, None)?, Some(errors)),
+            None => (attribution::output_errors(&float, &quantized, &held_out, threads, None)?, None),
         };
-        check_hard_limit(&outputs, &layers, held_out.len(), o.hard_limit)?;
+        // QAT from the original moves the model away from the pruned float one, towards the
+        // original: it is broken only when past the limit against both.
+        let (judged, against) = match &from_original {
+            Some(e) => (e, "the unpruned original"),
+            None => (&outputs, "float"),
+        };
+        let vs_float = check_hard_limit(&outputs, &layers, held_out.len(), "float", o.hard_limit);
+        if from_original.is_none() || check_hard_limit(judged, &layers, held_out.len(), against, o.hard_limit).is_err() {
+            vs_float?;
+        }
         if let Some(budget) = o.error_budget {
-            let worst = worst_rel_l2(&outputs);
+            let worst = worst_rel_l2(judged);
             if worst > budget {
                 warnings.push(format!(
-                    "INT8 missed its error budget: its worst output group is rel L2 {worst:.3} from float on {} held-out frames (budget {budget}, hard limit {}), so its detections will move; calibrate on frames like the deployment's (--calib), raise max_float_layers ({}), or add qat to get closer",
+                    "INT8 missed its error budget: its worst output group is rel L2 {worst:.3} from {against} on {} held-out frames (budget {budget}, hard limit {}), so its detections will move; calibrate on frames like the deployment's (--calib), raise max_float_layers ({}), or add qat to get closer",
                     held_out.len(),
                     o.hard_limit.max_rel_l2,
                     o.max_float_layers
@@ -437,7 +448,7 @@ impl Pass for Quantize {
 }
 
 /// Refuses a result past the hard limit, naming the worst output groups and layers.
-fn check_hard_limit(outputs: &[attribution::OutputError], layers: &[LayerError], frames: usize, limit: HardLimit) -> Result<()> {
+fn check_hard_limit(outputs: &[attribution::OutputError], layers: &[LayerError], frames: usize, against: &str, limit: HardLimit) -> Result<()> {
     // As worst_rel_l2 judges: a decoded output by its groups, any other output whole.
     let grouped: HashSet<&str> = outputs.iter().filter(|e| e.group.is_some()).map(|e| e.output.as_str()).collect();
     let broken: Vec<String> = outputs
@@ -451,7 +462,7 @@ fn check_hard_limit(outputs: &[attribution::OutputError], layers: &[LayerError],
     }
     let worst: Vec<String> = layers.iter().take(3).map(|l| format!("{} ({:.3})", l.node, l.accumulated.map_or(l.alone.rel_l2, |e| e.rel_l2))).collect();
     Err(crate::pipeline::QualityFailure(format!(
-        "INT8 broke the model: {} against float on {frames} held-out frames, past the hard limit (rel L2 {}, cosine {}); worst layers: {}. Calibrate on frames like the model's input (--calib), keep those layers float (keep_float), or raise hard_limit if this is expected",
+        "INT8 broke the model: {} against {against} on {frames} held-out frames, past the hard limit (rel L2 {}, cosine {}); worst layers: {}. Calibrate on frames like the model's input (--calib), keep those layers float (keep_float), or raise hard_limit if this is expected",
         broken.join(", "),
         limit.max_rel_l2,
         limit.min_cosine,
@@ -475,10 +486,10 @@ fn original_teacher(cx: &PassContext) -> Result<crate::pipeline::Teacher> {
 /// a scene kept); the trained model is kept only if it got closer to its teacher on the
 /// held-out frames (the worst output group's rel L2; with a class foreground term, from
 /// `original` by default, the distillation loss, below).
-/// Returns the model kept, the report, and, when the teacher is `float`, the kept model's
-/// held-out output errors.
+/// Returns the model kept, the report, and the kept model's held-out output errors against
+/// its teacher.
 #[allow(clippy::too_many_arguments)]
-fn quantization_aware(float: &ModelProto, original: Option<&crate::pipeline::Teacher>, quantized: ModelProto, frames: Vec<crate::tensor::Tensor>, held_out: &[Vec<(String, crate::tensor::Tensor)>], o: &Options, q: &Qat, scale_groups: Vec<Vec<String>>, threads: usize) -> Result<(ModelProto, serde_json::Value, Option<Vec<attribution::OutputError>>)> {
+fn quantization_aware(float: &ModelProto, original: Option<&crate::pipeline::Teacher>, quantized: ModelProto, frames: Vec<crate::tensor::Tensor>, held_out: &[Vec<(String, crate::tensor::Tensor)>], o: &Options, q: &Qat, scale_groups: Vec<Vec<String>>, threads: usize) -> Result<(ModelProto, serde_json::Value, Vec<attribution::OutputError>)> {
     if frames.len() < q.batch {
         bail!("qat has {} calibration frames for batches of {}; raise calib_frames or lower qat's batch", frames.len(), q.batch);
     }
@@ -521,7 +532,8 @@ fn quantization_aware(float: &ModelProto, original: Option<&crate::pipeline::Tea
         "not_reproducible": t.outcome.capped.then(|| t.outcome.cap_note()),
         "training": t.outcome,
     });
-    let errors = original.is_none().then_some(if kept { after } else { before });
+    // Against the model it learned from: the float model, or the original before pruning.
+    let errors = if kept { after } else { before };
     Ok((if kept { t.model } else { quantized }, report, errors))
 }
 
