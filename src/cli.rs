@@ -360,6 +360,17 @@ fn pair(s: &str, what: &str) -> Result<(usize, usize)> {
     }
 }
 
+/// Prints a measured verdict (JSON or its screen) and returns its exit code: 0 when it
+/// passed, else `EXIT_GATE_FAILED`.
+fn verdict(report: &impl serde::Serialize, json: bool, screen: String, passed: bool) -> Result<u8> {
+    if json {
+        println!("{}", serde_json::to_string_pretty(report)?);
+    } else {
+        print!("{screen}");
+    }
+    Ok(if passed { 0 } else { EXIT_GATE_FAILED })
+}
+
 /// Exit code of a run that worked but whose gate failed (bad input exits 2).
 pub const EXIT_GATE_FAILED: u8 = 1;
 
@@ -407,14 +418,7 @@ pub fn run(cli: Cli) -> Result<u8> {
                 anyhow::bail!("rebuild writes a new folder to compare with {}: give another -o", dir.display());
             }
             let r = crate::rebuild::rebuild(&crate::rebuild::RebuildRequest { dir, out, data })?;
-            if json {
-                println!("{}", serde_json::to_string_pretty(&r)?);
-            } else {
-                print!("{}", r.render());
-            }
-            if !r.passed {
-                return Ok(EXIT_GATE_FAILED);
-            }
+            return verdict(&r, json, r.render(), r.passed);
         }
         Command::Psf { command } => psf_command(command)?,
         Command::Synth { out, n, size, seed, min_box } => {
@@ -465,14 +469,7 @@ pub fn run(cli: Cli) -> Result<u8> {
             if let Some(path) = &junit {
                 crate::fsutil::write_atomic(path, crate::verify::junit::render(&suite, &report.checks, started.elapsed().as_secs_f64()).as_bytes())?;
             }
-            if json {
-                println!("{}", serde_json::to_string_pretty(&report)?);
-            } else {
-                print!("{}", report.render());
-            }
-            if !report.passed {
-                return Ok(EXIT_GATE_FAILED);
-            }
+            return verdict(&report, json, report.render(), report.passed);
         }
         Command::Bench { model, out, psf, calib, data, frames, runs, tract_fp16, recover_steps, threads, json } => {
             let r = crate::bench::bench(&crate::bench::BenchRequest { model, out: out.clone(), psf, calib, data, frames, runs, tract_fp16, recover_steps, threads: threads_or_all(threads)? })?;
