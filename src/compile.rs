@@ -2,7 +2,7 @@
 //!
 //! DIR/model.onnx      the compiled model (one self-contained file)
 //! DIR/report.json     per-pass reports and before/after counts
-//! DIR/manifest.yaml   input hash, pipeline, tool version, target: what made this folder
+//! DIR/manifest.yaml   what made this folder, complete enough for `rebuild` (`manifest`)
 //! DIR/tract.yaml      (--target tract) tract's load/run times and agreement with ORT;
 //!                     DIR/model.nnef.tar beside it when that loads faster
 //! The folder is built under a temporary sibling name and moved into place whole: a failed
