@@ -128,7 +128,7 @@ pub fn compile_recipe(req: &CompileRequest, recipe: Recipe) -> Result<CompileRep
     let report = CompileReport {
         tool_version: env!("CARGO_PKG_VERSION"),
         input: req.model.display().to_string(),
-        input_sha256: hex(&Sha256::digest(&bytes)),
+        input_sha256: crate::manifest::hex(&Sha256::digest(&bytes)),
         pipeline: recipe,
         pipeline_file: req.pipeline.display().to_string(),
         before,
@@ -178,8 +178,4 @@ fn manifest(req: &CompileRequest, r: &CompileReport, model: &Path) -> Result<Str
         target_check: r.target_check.clone(),
     };
     Ok(yaml_serde::to_string(&m)?)
-}
-
-fn hex(b: &[u8]) -> String {
-    b.iter().map(|x| format!("{x:02x}")).collect()
 }

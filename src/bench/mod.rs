@@ -19,7 +19,7 @@
 
 pub mod plot;
 
-use crate::compile::{compile, CompileRequest};
+use crate::compile::{compile, CompileReport, CompileRequest};
 use crate::fsutil::{ensure_dir, write_atomic, StagedDir};
 use crate::pipeline::{PassContext, Recipe};
 use crate::runtime::{self, Engine, Runtime};
@@ -86,6 +86,43 @@ pub struct BenchReport {
     /// Seconds per compile, by variant.
     pub compile_seconds: Vec<(String, f64)>,
     pub seconds: f64,
+}
+
+/// The variants whose compile ended past a lossy pass's hard limit (no artifact), and why; a
+/// variant made from a failed one fails with it. `bench` and `ship` go on with the rest.
+#[derive(Default)]
+pub(crate) struct Failed(Vec<(String, String)>);
+
+impl Failed {
+    pub fn contains(&self, name: &str) -> bool {
+        self.0.iter().any(|(n, _)| n == name)
+    }
+
+    /// True (and recorded) when `name`'s source variant failed.
+    pub fn source_failed(&mut self, name: &str, from: Option<&str>) -> bool {
+        let Some(f) = from.filter(|f| self.contains(f)) else { return false };
+        self.0.push((name.to_string(), format!("its source variant {f} failed")));
+        true
+    }
+
+    /// The compile's report, or None when it failed its hard limit (recorded, and said on
+    /// stderr under `command`); other errors pass through.
+    pub fn take(&mut self, command: &str, name: &str, compiled: Result<CompileReport>) -> Result<Option<CompileReport>> {
+        match compiled {
+            Ok(r) => Ok(Some(r)),
+            Err(e) if crate::pipeline::is_quality_failure(&e) => {
+                eprintln!("{command}: {name} failed: {e:#}");
+                self.0.push((name.to_string(), format!("{e:#}")));
+                Ok(None)
+            }
+            Err(e) => Err(e),
+        }
+    }
+
+    /// `name: why`, one a variant, for the reports.
+    pub fn lines(self) -> Vec<String> {
+        self.0.into_iter().map(|(n, why)| format!("{n}: {why}")).collect()
+    }
 }
 
 /// A recipe of `text`'s last pass alone, named `name`: applied to an earlier variant, it
@@ -156,10 +193,9 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
     ];
     let variant_dir = |v: &str| root.join("variants").join(v);
     let mut compile_seconds = Vec::new();
-    let (mut failed, mut notes): (Vec<(String, String)>, Vec<String>) = (Vec::new(), Vec::new());
+    let (mut failed, mut notes) = (Failed::default(), Vec::new());
     for (name, from, recipe) in &stages {
-        if let Some(f) = from.filter(|f| failed.iter().any(|(n, _)| n == f)) {
-            failed.push((name.to_string(), format!("its source variant {f} failed")));
+        if failed.source_failed(name, *from) {
             continue;
         }
         eprintln!("bench: compiling {name}");
@@ -175,15 +211,8 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
             threads: req.threads,
             decisions: None,
         });
-        match compiled {
-            Ok(r) => notes.extend(r.warnings.iter().filter(|w| w.contains("missed its error budget")).map(|w| format!("{name}: {w}"))),
-            Err(e) if crate::pipeline::is_quality_failure(&e) => {
-                eprintln!("bench: {name} failed: {e:#}");
-                failed.push((name.to_string(), format!("{e:#}")));
-                continue;
-            }
-            Err(e) => return Err(anyhow!("compiling the {name} variant: {e:#}")),
-        }
+        let Some(r) = failed.take("bench", name, compiled).map_err(|e| anyhow!("compiling the {name} variant: {e:#}"))? else { continue };
+        notes.extend(r.warnings.iter().filter(|w| w.contains("missed its error budget")).map(|w| format!("{name}: {w}")));
         compile_seconds.push((name.to_string(), c.elapsed().as_secs_f64()));
     }
 
@@ -192,7 +221,7 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
     let mut rows = Vec::new();
     let mut not_measured = Vec::new();
     let mut timed: Vec<(String, Engine, PathBuf)> = Vec::new();
-    for (name, _, _) in stages.iter().filter(|(n, _, _)| !failed.iter().any(|(f, _)| f == n)) {
+    for (name, _, _) in stages.iter().filter(|(n, _, _)| !failed.contains(n)) {
         let tract = !name.ends_with("fp16") || TRACT_NATIVE_F16 || req.tract_fp16;
         if !tract {
             not_measured.push(format!("{name} on tract: tract emulates f16 arithmetic on {} (pass --tract-fp16 to measure it anyway)", std::env::consts::ARCH));
@@ -238,7 +267,7 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
         threads: req.threads,
         rows,
         not_measured,
-        failed: failed.into_iter().map(|(n, why)| format!("{n}: {why}")).collect(),
+        failed: failed.lines(),
         notes,
         compile_seconds,
         seconds: 0.0,

@@ -34,28 +34,17 @@ impl Pass for BindPsf {
 
     /// A blur map that is a graph input needs `--psf`; a given map must load.
     fn preflight(&self, input: &ModelProto, cx: &PassContext) -> Result<()> {
-        let Some(g) = input.graph.as_ref() else { return Ok(()) };
-        let graph = Graph::build(g)?;
-        let inf = infer(&graph);
-        let image = partition::image_input(&graph, &inf);
-        let maps = bridge::find(&graph, &inf, image.as_deref()).blur_maps;
+        if input.graph.is_none() {
+            return Ok(());
+        }
         match cx.psf.as_ref().or(self.options.psf.as_ref()) {
-            None => match maps.iter().find(|m| m.source == "input") {
-                Some(m) => bail!("the blur map '{}' is a graph input: give the camera's calibration with --psf FILE (.npy or .yaml)", m.name),
-                None => Ok(()),
-            },
+            None => no_input_map(&blur_maps(input)?),
             Some(file) => BlurMap::load(file).map(|_| ()),
         }
     }
 
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
-        let maps = {
-            let g = model.graph.as_ref().expect("checked by the pipeline");
-            let graph = Graph::build(g)?;
-            let inf = infer(&graph);
-            let image = partition::image_input(&graph, &inf);
-            bridge::find(&graph, &inf, image.as_deref()).blur_maps
-        };
+        let maps = blur_maps(model)?;
         let psf_file = cx.psf.as_ref().or(self.options.psf.as_ref());
         if maps.is_empty() {
             if psf_file.is_some() {
@@ -64,9 +53,7 @@ impl Pass for BindPsf {
             return Ok(serde_json::json!({ "bound": false, "reason": "no PALS-Bridge blur map in the model (not a PDI-Net export, or its map is folded already)" }));
         }
         let Some(file) = psf_file else {
-            if let Some(m) = maps.iter().find(|m| m.source == "input") {
-                bail!("the blur map '{}' is a graph input: give the camera's calibration with --psf FILE (.npy or .yaml)", m.name);
-            }
+            no_input_map(&maps)?;
             return Ok(serde_json::json!({ "bound": false, "reason": "blur map already constant; no --psf given" }));
         };
         let map = BlurMap::load(file)?;
@@ -88,5 +75,22 @@ impl Pass for BindPsf {
         }
         let (lo, hi) = map.values.iter().fold((f32::MAX, f32::MIN), |(a, b), &v| (a.min(v), b.max(v)));
         Ok(serde_json::json!({ "bound": true, "maps": bound, "file": file.display().to_string(), "grid": [map.rows, map.cols], "min": lo, "max": hi }))
+    }
+}
+
+/// The PALS-Bridge blur maps of `model`.
+fn blur_maps(model: &ModelProto) -> Result<Vec<bridge::BlurMap>> {
+    let g = model.graph.as_ref().ok_or_else(|| anyhow::anyhow!("model has no graph"))?;
+    let graph = Graph::build(g)?;
+    let inf = infer(&graph);
+    let image = partition::image_input(&graph, &inf);
+    Ok(bridge::find(&graph, &inf, image.as_deref()).blur_maps)
+}
+
+/// Refuses a blur map that is a graph input when no `--psf` was given to bind it.
+fn no_input_map(maps: &[bridge::BlurMap]) -> Result<()> {
+    match maps.iter().find(|m| m.source == "input") {
+        Some(m) => bail!("the blur map '{}' is a graph input: give the camera's calibration with --psf FILE (.npy or .yaml)", m.name),
+        None => Ok(()),
     }
 }

@@ -140,9 +140,9 @@ impl Pass for Prune {
         };
         clock.lap("frames_and_importance");
         let opset = crate::onnx::edit::default_opset(model).unwrap_or(13);
+        // `check` refused a target together with ratios.
         let (per_group, sensitivity) = match (o.target, &o.ratios) {
-            (Some(_), Some(_)) => bail!("prune takes a target or ratios, not both"),
-            (None, Some(r)) => (Some(r.iter().map(|(k, v)| (k.clone(), *v)).collect()), None),
+            (_, Some(r)) => (Some(r.iter().map(|(k, v)| (k.clone(), *v)).collect()), None),
             (None, None) => (None, None),
             (Some(target), None) => {
                 let feeds = feeds.get(..o.sensitivity_frames.min(feeds.len())).filter(|f| !f.is_empty()).ok_or_else(|| anyhow!("a pruning target needs calibration frames: {source}"))?;

@@ -258,7 +258,6 @@ impl Pass for Quantize {
 
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
-        o.check()?;
         let original = match &o.qat {
             Some(q) if q.teacher == QatTeacher::Original => Some(original_teacher(cx)?),
             _ => None,
@@ -346,7 +345,7 @@ impl Pass for Quantize {
         };
         clock.lap("float_where_faster");
         // QAT measures the model it keeps on the held-out frames; those errors are reported below.
-        // The errors QAT measured against its teacher, and whether that teacher is the float model.
+        // The errors QAT measured against its teacher (the float model, or the original).
         let (quantized, qat, kept_errors) = match &o.qat {
             None => (quantized, None, None),
             Some(q) => {
@@ -358,7 +357,7 @@ impl Pass for Quantize {
                 let train = feeds.iter().map(|f| f[0].1.clone()).chain(more.into_iter().filter_map(|f| f.into_iter().next().map(|(_, t)| t))).collect();
                 let groups = if q.scales { crate::quant::qat::scale_groups(&quantized, &emitted.dequantized, |v| current.root(v).to_string()) } else { Vec::new() };
                 let (model, report, errors) = quantization_aware(&float, original.as_ref(), quantized, train, &held_out, o, q, groups, threads)?;
-                (model, Some(report), Some((errors, original.is_none())))
+                (model, Some(report), Some(errors))
             }
         };
         clock.lap("qat");
@@ -370,10 +369,9 @@ impl Pass for Quantize {
         layers.retain(|l| current.quantized.contains(&alone.node_of_value[&l.value]));
         layers.sort_by(|a, b| b.accumulated.map_or(b.alone.rel_l2, |e| e.rel_l2).total_cmp(&a.accumulated.map_or(a.alone.rel_l2, |e| e.rel_l2)));
         clock.lap("accumulated_errors");
-        let (outputs, from_original) = match kept_errors {
-            Some((errors, true)) => (errors, None),
-            Some((errors, false)) => (attribution::output_errors(&float, &quantized, &held_out, threads, None)?, Some(errors)),
-            None => (attribution::output_errors(&float, &quantized, &held_out, threads, None)?, None),
+        let (outputs, from_original) = match (kept_errors, original.is_some()) {
+            (Some(errors), false) => (errors, None),
+            (errors, _) => (attribution::output_errors(&float, &quantized, &held_out, threads, None)?, errors),
         };
         // QAT from the original moves the model away from the pruned float one, towards the
         // original: it is broken only when past the limit against both.
@@ -381,9 +379,8 @@ impl Pass for Quantize {
             Some(e) => (e, "the unpruned original"),
             None => (&outputs, "float"),
         };
-        let vs_float = check_hard_limit(&outputs, &layers, held_out.len(), "float", o.hard_limit);
-        if from_original.is_none() || check_hard_limit(judged, &layers, held_out.len(), against, o.hard_limit).is_err() {
-            vs_float?;
+        if from_original.as_ref().is_none_or(|e| check_hard_limit(e, &layers, held_out.len(), against, o.hard_limit).is_err()) {
+            check_hard_limit(&outputs, &layers, held_out.len(), "float", o.hard_limit)?;
         }
         if let Some(budget) = o.error_budget {
             let worst = worst_rel_l2(judged);

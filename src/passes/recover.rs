@@ -115,7 +115,6 @@ impl Pass for Recover {
 
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
-        o.check()?;
         let Teacher { model: teacher, kept, window, estimates } = cx.teacher.borrow().clone().ok_or_else(|| anyhow!("recover distills a pruned or scene-specialized model from the model before: put a prune pass before it in the recipe (or specialize with --scene)"))?;
         // Frames are the teacher's: with a scene ROI the student sees their crop.
         let g = teacher.graph.as_ref().ok_or_else(|| anyhow!("teacher has no graph"))?;

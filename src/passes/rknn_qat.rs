@@ -101,7 +101,6 @@ impl Pass for RknnQat {
 
     fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
-        o.check()?;
         let layout = HeadLayout::from_model(model).map_err(|_| anyhow!("rknn-qat needs a model from rknn-legalize: put it after rknn-legalize in the recipe"))?;
         if !crate::passes::rknn_hybrid::stored(model)?.is_empty() {
             bail!("rknn-qat trains every layer in INT8, and this model has rknn-hybrid's FP16 spans: drop rknn-hybrid from the recipe");

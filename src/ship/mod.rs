@@ -16,7 +16,7 @@
 
 pub mod render;
 
-use crate::bench::{last_pass_of, time_together, with_recover_steps, Timing, DETECT_F32, DETECT_INT8};
+use crate::bench::{last_pass_of, time_together, with_recover_steps, Failed, Timing, DETECT_F32, DETECT_INT8};
 use crate::compile::{compile, CompileReport, CompileRequest};
 use crate::fsutil::{ensure_dir, write_atomic, StagedDir};
 use crate::pipeline::{PassContext, Recipe};
@@ -105,10 +105,9 @@ pub fn ship(req: &ShipRequest) -> Result<ShipReport> {
     let folder = |v: &str| root.join(v);
     let mut compiled: Vec<(&str, CompileReport, f64)> = Vec::new();
     let mut warnings = Vec::new();
-    let mut failed: Vec<(&str, String)> = Vec::new();
+    let mut failed = Failed::default();
     for (name, from, recipe, target) in stages(req)? {
-        if let Some(f) = from.filter(|f| failed.iter().any(|(n, _)| n == f)) {
-            failed.push((name, format!("its source variant {f} failed")));
+        if failed.source_failed(name, from) {
             continue;
         }
         eprintln!("ship: compiling {name}");
@@ -126,20 +125,12 @@ pub fn ship(req: &ShipRequest) -> Result<ShipReport> {
             threads: req.threads,
             decisions: None,
         });
-        let report = match report {
-            Ok(r) => r,
-            Err(e) if crate::pipeline::is_quality_failure(&e) => {
-                eprintln!("ship: {name} failed: {e:#}");
-                failed.push((name, format!("{e:#}")));
-                continue;
-            }
-            Err(e) => return Err(anyhow!("compiling {name}: {e:#}")),
-        };
+        let Some(report) = failed.take("ship", name, report).map_err(|e| anyhow!("compiling {name}: {e:#}"))? else { continue };
         warnings.extend(report.warnings.iter().map(|w| format!("{name}: {w}")));
         compiled.push((name, report, t.elapsed().as_secs_f64()));
     }
 
-    let onnx_variants: Vec<&str> = ["f32", "pruned-f32", "pruned-int8"].into_iter().filter(|v| !failed.iter().any(|(f, _)| f == v)).collect();
+    let onnx_variants: Vec<&str> = ["f32", "pruned-f32", "pruned-int8"].into_iter().filter(|v| !failed.contains(v)).collect();
     let mut variants = vec![original(req)?];
     for (name, report, seconds) in compiled.iter().filter(|(n, _, _)| onnx_variants.contains(n)) {
         eprintln!("ship: checking {name} against the original");
@@ -198,7 +189,7 @@ pub fn ship(req: &ShipRequest) -> Result<ShipReport> {
         runs: req.runs,
         variants,
         rknn: rknn.display().to_string(),
-        failed: failed.into_iter().map(|(n, why)| format!("{n}: {why}")).collect(),
+        failed: failed.lines(),
         warnings: warnings.into_iter().chain(crate::warn::take()).collect(),
         seconds: started.elapsed().as_secs_f64(),
     };
