@@ -47,6 +47,15 @@ pub fn svg(shapes: &[Shape], width: u32, height: u32) -> String {
 
 pub fn png(shapes: &[Shape], width: u32, height: u32) -> Result<Vec<u8>> {
     let mut img = image::RgbImage::from_pixel(width, height, image::Rgb([255, 255, 255]));
+    paint(&mut img, shapes);
+    let mut bytes = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut bytes, image::ImageFormat::Png)?;
+    Ok(bytes.into_inner())
+}
+
+/// Draws `shapes` over `img` (clipped to it).
+pub fn paint(img: &mut image::RgbImage, shapes: &[Shape]) {
+    let (width, height) = img.dimensions();
     let mut put = |x: i64, y: i64, c: [u8; 3]| {
         if (0..width as i64).contains(&x) && (0..height as i64).contains(&y) {
             img.put_pixel(x as u32, y as u32, image::Rgb(c));
@@ -103,7 +112,4 @@ pub fn png(shapes: &[Shape], width: u32, height: u32) -> Result<Vec<u8>> {
             }
         }
     }
-    let mut bytes = std::io::Cursor::new(Vec::new());
-    img.write_to(&mut bytes, image::ImageFormat::Png)?;
-    Ok(bytes.into_inner())
 }

@@ -149,6 +149,46 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Run an artifact on camera frames: OUT/detections.json (COCO results), OUT/labels/*.txt
+    /// (YOLO), OUT/images/*.png (boxes drawn), OUT/contact_sheet.png, OUT/run.json (latency per
+    /// stage; mAP when YOLO labels lie beside the frames).
+    Run {
+        /// A folder `compile` or `ship` wrote (model.onnx with tract.yaml or rknn.yaml), or a model file.
+        artifact: PathBuf,
+        /// A frame, a folder of frames, or a numbered sequence (frames/%05d.png): 8/16-bit
+        /// PNG/TIFF or .npy in [0, 1].
+        #[arg(long)]
+        frames: PathBuf,
+        #[arg(short = 'o', long = "out")]
+        out: PathBuf,
+        /// Engine (default: the artifact's own: tract for a tract target, else ONNX Runtime).
+        #[arg(long, value_enum)]
+        engine: Option<crate::runtime::Engine>,
+        /// Threads (default: the tract target's fastest count, else every core).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Score threshold (default: an RKNN folder's rknn.yaml, else the scene's
+        /// score_threshold, else 0.25).
+        #[arg(long)]
+        conf: Option<f32>,
+        /// NMS IoU threshold (default: an RKNN folder's rknn.yaml, else validation's: 0.6 for
+        /// YOLOv5 heads, 0.7 for YOLOv8, so mAP here is verify's).
+        #[arg(long)]
+        iou: Option<f32>,
+        /// Detections kept per frame (default: an RKNN folder's rknn.yaml, else the scene's
+        /// max_detections, else 300).
+        #[arg(long)]
+        max_det: Option<usize>,
+        /// Camera blur map, for a model compiled without bind-psf.
+        #[arg(long)]
+        psf: Option<PathBuf>,
+        /// A second artifact run on the same frames: pictures side by side, the boxes only one
+        /// of them found in magenta, and this artifact's agreement with it.
+        #[arg(long)]
+        compare: Option<PathBuf>,
+        #[arg(long)]
+        json: bool,
+    },
     /// Compare a compiled candidate with its reference on ORT and tract; exit 1 if a gate fails.
     Verify {
         /// The original model (run on ONNX Runtime).
@@ -411,6 +451,15 @@ pub fn run(cli: Cli) -> Result<u8> {
                 if !r.warnings.is_empty() {
                     println!("  {} warning(s), on stderr above and in report.json", r.warnings.len());
                 }
+            }
+        }
+        Command::Run { artifact, frames, out, engine, threads, conf, iou, max_det, psf, compare, json } => {
+            let options = crate::deploy::Options { engine, threads, conf, iou, max_det, psf };
+            let r = crate::run::run(&crate::run::RunRequest { artifact, frames, out, options, compare })?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r)?);
+            } else {
+                print!("{}", r.render());
             }
         }
         Command::Rebuild { dir, out, data, json } => {

@@ -53,12 +53,16 @@ pub fn count(dir: &Path) -> Result<usize> {
     Ok(crate::dataset::image_files(dir)?.len())
 }
 
-struct Gray {
-    w: usize,
-    h: usize,
-    data: Vec<f32>,
+/// A frame as stored, before any resizing: luma values in [0, 1].
+pub struct Gray {
+    pub w: usize,
+    pub h: usize,
+    pub data: Vec<f32>,
     /// Channels of the stored image (1 for luma and .npy).
-    channels: usize,
+    pub channels: usize,
+    /// Bits per sample: 8 or 16 for integer images (scaled by their full scale), 32 for float
+    /// samples (.npy taken as is; a float image has no full scale to scale by).
+    pub bits: u8,
 }
 
 /// A grayscale frame as (width, height, values in [0, 1]): 8/16-bit PNG or TIFF (by full
@@ -67,12 +71,13 @@ pub fn read_gray(path: &Path) -> Result<(usize, usize, Vec<f32>)> {
     decode(path).map(|g| (g.w, g.h, g.data))
 }
 
-fn decode(path: &Path) -> Result<Gray> {
+/// A frame file as stored (see [`Gray`]).
+pub fn decode(path: &Path) -> Result<Gray> {
     if path.extension().is_some_and(|e| e == "npy") {
         let a = npy::read(path)?;
         let dims: Vec<usize> = a.shape.iter().copied().filter(|&d| d != 1).collect();
         let [h, w] = dims[..] else { bail!("expected a [H, W] array, got {:?}", a.shape) };
-        return Ok(Gray { w, h, data: a.data, channels: 1 });
+        return Ok(Gray { w, h, data: a.data, channels: 1, bits: 32 });
     }
     let bytes = std::fs::read(path).map_err(|e| anyhow!("cannot read: {e}"))?;
     decode_image(&bytes)
@@ -99,12 +104,13 @@ fn decode_image(bytes: &[u8]) -> Result<Gray> {
     let img = reader.decode().map_err(|e| anyhow!("cannot decode image: {e}"))?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let channels = img.color().channel_count() as usize - usize::from(img.color().has_alpha());
+    let bits = (img.color().bits_per_pixel() / u16::from(img.color().channel_count())) as u8;
     let data: Vec<f32> = match img {
         image::DynamicImage::ImageLuma8(b) => b.into_raw().iter().map(|&v| v as f32 / 255.0).collect(),
         image::DynamicImage::ImageLuma16(b) => b.into_raw().iter().map(|&v| v as f32 / 65535.0).collect(),
         other => other.to_luma32f().into_raw(),
     };
-    Ok(Gray { w, h, data, channels })
+    Ok(Gray { w, h, data, channels, bits })
 }
 
 /// Writes values in [0, 1] as a 16-bit grayscale PNG, atomically.

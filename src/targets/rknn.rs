@@ -5,6 +5,8 @@
 //!                     `pdi-compile rknn-convert DIR`
 //! DIR/dataset.txt     the calibration frames, one .npy per line (relative to DIR)
 //! DIR/calib/*.npy     those frames, [1, 1, H, W] float32 in 0..255
+//! DIR/run_rknn.py     runs model.rknn on the board (RKNNLite) or the toolkit's simulator:
+//!                     the pre-processing and decoding of `pdi-compile run`, in Python
 //!
 //! The model must come out of `rknn-legalize` (float, per-stride outputs, head layout in its
 //! metadata): the toolkit quantizes it itself, from these frames.
@@ -34,11 +36,28 @@ pub struct RknnConfig {
     pub quantization: RknnQuantization,
     pub outputs: Vec<String>,
     pub head_layout: HeadLayout,
+    /// Class names in output order (the export's `names`, else indices).
+    #[serde(default)]
+    pub names: Vec<String>,
+    /// A scene's ROI: frames are resized to `frame` and `roi` cut out before the NPU sees them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crop: Option<Crop>,
     /// What the application's post-processing applies (a scene's settings, else YOLO's
     /// deployment defaults); `rknn-convert` matches detections with them.
     #[serde(default)]
     pub post_processing: PostProcessing,
 }
+
+#[derive(Serialize, Deserialize, Clone, Debug)]
+pub struct Crop {
+    /// (height, width) of the frame the model's boxes are in.
+    pub frame: [usize; 2],
+    /// x, y, width, height in that frame.
+    pub roi: [usize; 4],
+}
+
+/// The board's runner, written beside the model.
+pub const RUN_RKNN: &str = include_str!("run_rknn.py");
 
 #[derive(Serialize, Deserialize, Clone, Debug)]
 pub struct PostProcessing {
@@ -148,10 +167,13 @@ pub fn write(dir: &Path, model: &ModelProto, calib: Option<&Path>) -> Result<Rkn
             trained_points: super::rknn_points::stored(model)?,
         },
         outputs: layout.output_names(),
+        names: crate::scene::class_names(model).filter(|n| n.len() == layout.classes).unwrap_or_else(|| (0..layout.classes).map(|i| i.to_string()).collect()),
+        crop: crate::scene::SceneMeta::read(model)?.and_then(|s| s.roi.map(|r| Crop { frame: s.frame, roi: [r.x, r.y, r.w, r.h] })),
         head_layout: layout,
         post_processing: PostProcessing::of(model)?,
     };
     write_atomic(&dir.join("rknn.yaml"), yaml_serde::to_string(&config)?.as_bytes())?;
+    write_atomic(&dir.join("run_rknn.py"), RUN_RKNN.as_bytes())?;
     Ok(config)
 }
 

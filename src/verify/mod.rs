@@ -11,14 +11,12 @@ pub mod junit;
 pub mod latency;
 
 use crate::analysis::head::{Head, HeadKind};
-use crate::analysis::partition;
+use crate::deploy::input::ModelInput;
 use crate::detect::{decode, nms::nms, Detection};
 use crate::frames::{self, Frame};
-use crate::ir::{infer, Graph};
 use crate::metrics::coco_map::{coco_map, MapResult, Truth};
 use crate::metrics::tensor_error::{compare, TensorError};
 use crate::onnx::proto::ModelProto;
-use crate::optics::blur_map::BlurMap;
 use crate::runtime::{self, Engine, Runtime};
 use crate::scene::compare::SceneView;
 use crate::tensor::Tensor;
@@ -120,21 +118,11 @@ pub(crate) struct Side {
 
 pub(crate) fn side(path: &std::path::Path, what: &str) -> Result<Side> {
     let model = crate::onnx::load(path)?.model;
-    let g = model.graph.as_ref().ok_or_else(|| anyhow!("{what} has no graph"))?;
-    let graph = Graph::build(g)?;
-    let inf = infer(&graph);
-    let image_input = partition::image_input(&graph, &inf).ok_or_else(|| anyhow!("{what} {} has no [1, C, H, W] image input", path.display()))?;
-    let s = inf.shape(&image_input).ok_or_else(|| anyhow!("{what}'s image input '{image_input}' has no static shape"))?;
-    let other_inputs = graph.inputs.iter().map(|v| v.name.clone()).filter(|n| *n != image_input).collect();
-    let channels = usize::try_from(s[1]).ok().filter(|&c| (1..=16).contains(&c)).ok_or_else(|| anyhow!("{what}'s image input '{image_input}' has {} channels; expected 1 to 16", s[1]))?;
-    Ok(Side { shape: (s[2], s[3]), channels, image_input, other_inputs, model })
+    let i = ModelInput::of(&model, &format!("{what} {}", path.display()))?;
+    Ok(Side { shape: i.shape, channels: i.channels, image_input: i.image_input, other_inputs: i.other_inputs, model })
 }
 
-/// The camera's blur map as the [1, 1, rows, cols] tensor a model with a blur input takes.
-pub(crate) fn blur_input(path: &std::path::Path) -> Result<Tensor> {
-    let m = BlurMap::load(path)?;
-    Ok(Tensor::f32(vec![1, 1, m.rows, m.cols], m.values))
-}
+pub(crate) use crate::deploy::input::blur_input;
 
 pub(crate) fn feeds(side: &Side, frame: &Frame, psf: Option<&Tensor>) -> Result<Vec<(String, Tensor)>> {
     let mut v = vec![(side.image_input.clone(), crate::calib_frames::replicate(&frame.image, side.channels))];

@@ -3,8 +3,7 @@
 //! bit and decodes in frame coordinates (through rknn-legalize's split head too), and its halos
 //! bring it closer to the full model than zero padding.
 
-mod common;
-use common::*;
+use crate::common::*;
 use pdi_compile::onnx::tensor_proto::to_tensor;
 use serde_json::Value;
 use std::path::{Path, PathBuf};

@@ -2,8 +2,7 @@
 //! `recover` pass brings a pruned model closer to the unpruned one without touching its graph.
 //! Needs the cache's torch venv: `pdi_compile::pyenv` installs it on first use (never skips).
 
-mod common;
-use common::*;
+use crate::common::*;
 use pdi_compile::tensor::Tensor;
 
 fn frames(shape: [usize; 4], n: usize) -> Vec<Tensor> {

@@ -5,8 +5,7 @@
 //! rounding moves weights by at most one step and lowers the layers' error, and
 //! quantization-aware recovery trains the emitted integers towards float.
 
-mod common;
-use common::*;
+use crate::common::*;
 use pdi_compile::runtime::{self, Engine};
 use std::path::Path;
 

@@ -5,7 +5,7 @@
 //! that ORT cannot run even from the original file are ORT's limits, listed with ORT's
 //! message; anything our round trip or IR breaks fails this test.
 
-mod common;
+use crate::common;
 use pdi_compile::onnx::proto::{ModelProto, TensorProto, TypeValue};
 use pdi_compile::onnx::tensor_proto::to_tensor;
 use pdi_compile::runtime::ort_runtime::OrtRuntime;

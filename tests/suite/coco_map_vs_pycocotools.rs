@@ -1,8 +1,7 @@
 //! Our COCO mAP equals pycocotools' COCOeval on the same boxes (within 1e-3, as required;
 //! in practice to float precision).
 
-mod common;
-use common::Lcg;
+use crate::common::Lcg;
 use pdi_compile::detect::Detection;
 use pdi_compile::metrics::coco_map::{coco_map, Truth};
 

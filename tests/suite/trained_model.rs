@@ -2,18 +2,7 @@
 //! lossless compile keeps its accuracy. The held-out set is regenerated from its recipe
 //! (models/trained/MODEL_CARD.md) by the Rust physics pipeline.
 
-mod common;
-use common::*;
-
-fn eval_set(dir: &std::path::Path) -> std::path::PathBuf {
-    let psf = dir.join("psf");
-    let r = cli(&["psf", "simulate", "--lens", "calib/lens_single_lwir.yaml", "-o", psf.to_str().unwrap()]);
-    assert_eq!(r.code, 0, "{}", r.stderr);
-    let set = dir.join("eval");
-    let r = cli(&["dataset", set.to_str().unwrap(), "--psf", psf.to_str().unwrap(), "--n", "200", "--q", "90", "--seed", "2", "--min-box", "16", "--out-size", "256x192"]);
-    assert_eq!(r.code, 0, "{}", r.stderr);
-    set.join("degraded")
-}
+use crate::common::*;
 
 /// Compiles `model` with `recipe` into `out`, then verifies it against `model` on `data`:
 /// the compile report and the verify report.

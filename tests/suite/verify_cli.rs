@@ -1,7 +1,6 @@
 //! `verify` as a CI gate: exit 0 when thresholds hold, 1 on a regression, 2 on bad input.
 
-mod common;
-use common::*;
+use crate::common::*;
 use pdi_compile::onnx::tensor_proto::{from_tensor, to_tensor};
 use pdi_compile::tensor::Tensor;
 use std::path::{Path, PathBuf};

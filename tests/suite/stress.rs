@@ -3,8 +3,7 @@
 //! output folder is complete, and gates, bad condition files and bad gates are answered
 //! as a CI job needs (exit 1, exit 2 with one line).
 
-mod common;
-use common::*;
+use crate::common::*;
 use std::path::Path;
 
 const TINY: &str = "models/trained/pdinet_v5_tiny_trained.onnx";

@@ -1,7 +1,6 @@
 //! The identity pipeline writes a complete output folder whose model runs bit-identically.
 
-mod common;
-use common::*;
+use crate::common::*;
 use pdi_compile::runtime::{self, Engine};
 
 #[test]

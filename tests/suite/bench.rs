@@ -1,8 +1,7 @@
 //! `pdi-compile bench`: every variant is compiled and measured, the Pareto marks follow from
 //! the numbers, and the table and plot files are complete.
 
-mod common;
-use common::*;
+use crate::common::*;
 
 #[test]
 fn bench_measures_every_variant_and_marks_the_pareto_front() {

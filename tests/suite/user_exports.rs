@@ -4,8 +4,7 @@
 //! weights in Constant nodes. Each must inspect right, compile losslessly with the shipped
 //! recipe and no flags, and quantize on single-channel calibration frames.
 
-mod common;
-use common::*;
+use crate::common::*;
 use std::path::PathBuf;
 
 const STANDARD: &str = "models/fixtures/pdinet_v5_input_op17_nofold.onnx";

@@ -2,9 +2,8 @@
 //! convolutions and SE blocks always stay runnable with their output shapes; every fixture
 //! meets the MAC/parameter targets and runs alike on ORT and tract.
 
-mod common;
 use pdi_compile::onnx::attr::{make_int as int, make_ints as ints};
-use common::*;
+use crate::common::*;
 use pdi_compile::onnx::proto::{AttributeProto, GraphProto, ModelProto, NodeProto, OperatorSetIdProto};
 use pdi_compile::onnx::tensor_proto::from_tensor;
 use pdi_compile::pipeline::{run, PassContext, Recipe};

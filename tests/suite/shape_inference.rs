@@ -1,8 +1,7 @@
 //! Inferred dtypes and static shapes equal what ONNX Runtime actually produces, for every
 //! value of every fixture (PyTorch's Shape/Gather/Concat/Reshape chains included).
 
-mod common;
-use common::*;
+use crate::common::*;
 use pdi_compile::ir::{infer, Graph};
 use pdi_compile::onnx::proto::*;
 use pdi_compile::runtime::{self, Engine};

@@ -3,8 +3,7 @@
 //! exactly like the original in-graph decode, `--target rknn` writes what the toolkit needs,
 //! and `rknn-convert` builds it with RKNN-Toolkit2 2.5.0 and checks its simulator.
 
-mod common;
-use common::*;
+use crate::common::*;
 use pdi_compile::analysis::head::HeadKind;
 use pdi_compile::detect::decode::candidates;
 use pdi_compile::detect::nms::nms;

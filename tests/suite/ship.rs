@@ -1,8 +1,7 @@
 //! `pdi-compile ship` (what `scripts/demo` runs) on the trained tiny model, with a recovery
 //! budget of seconds: every artifact folder is written, every variant measured, one screen.
 
-mod common;
-use common::*;
+use crate::common::*;
 
 #[test]
 fn ship_writes_every_artifact_and_one_screen() {

@@ -1,8 +1,7 @@
 //! `inspect --json` on every fixture: the reconstruction/detection/shared split, the three
 //! PALS-Bridge gates, the blur map's source and the head kind.
 
-mod common;
-use common::*;
+use crate::common::*;
 use serde_json::Value;
 
 #[test]

@@ -1,7 +1,6 @@
 //! Malformed files: one clear line on stderr, exit code 2, no panic, no partial output.
 
-mod common;
-use common::*;
+use crate::common::*;
 use pdi_compile::onnx::proto::*;
 use prost::Message;
 use std::path::Path;

@@ -1,7 +1,6 @@
 //! The physics commands end to end through the CLI, and their errors.
 
-mod common;
-use common::*;
+use crate::common::*;
 
 #[test]
 fn psf_blur_map_and_dataset_end_to_end() {

@@ -1,7 +1,6 @@
 //! The physics pipeline: diffraction, blur factors, degradation, the blur-map upsample, scenes.
 
-mod common;
-use common::repo;
+use crate::common::repo;
 use pdi_compile::optics::blur_index::{blur_map, resize_half_pixel, spot_stats};
 use pdi_compile::optics::degrade::{add_noise, psnr, NoiseModel, SpatialBlur, FULL_SCALE_14BIT};
 use pdi_compile::optics::lens::{Aberrations, FieldAberrations, Lens};

@@ -1,8 +1,7 @@
 //! The lossless pipeline (passes/detect-f32.yaml) on every fixture variant: detections equal
 //! the original's on ORT, nothing constant is left to compute, tract agrees.
 
-mod common;
-use common::*;
+use crate::common::*;
 use pdi_compile::ir::Graph;
 use pdi_compile::onnx::proto::ModelProto;
 use pdi_compile::optics::npy;

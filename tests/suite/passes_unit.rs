@@ -1,6 +1,6 @@
 //! Passes on small hand-built graphs: the edge cases fixtures do not reach.
 
-mod common;
+use crate::common;
 use pdi_compile::onnx::proto::*;
 use pdi_compile::onnx::tensor_proto::{from_tensor, to_tensor};
 use pdi_compile::pipeline::{self, PassContext, Recipe};

@@ -1,8 +1,8 @@
 //! `compile --target tract`: the folder proves tract loads and runs the model with fixed
 //! shapes and matches ONNX Runtime; an NNEF archive is kept only when it loads faster.
 
-mod common;
-use common::*;
+use crate::common;
+use crate::common::*;
 
 #[test]
 fn tract_target_writes_a_checked_folder() {

@@ -1,7 +1,6 @@
 //! Every committed fixture survives load -> save unchanged, and runs the same.
 
-mod common;
-use common::*;
+use crate::common::*;
 use pdi_compile::runtime::{self, Engine};
 use prost::Message;
 
