@@ -42,7 +42,7 @@ fn tract_target_writes_a_checked_folder() {
         for f in forms {
             let (whole, tiled) = (f["whole_ms"].as_f64().unwrap(), f["tiled_ms"].as_f64().unwrap());
             let chosen = f["tiled"].as_bool().unwrap();
-            assert!(whole > 0.0 && tiled > 0.0 && (!chosen || tiled < whole), "{f}");
+            assert!(whole > 0.0 && tiled > 0.0 && (!chosen || tiled < whole * 0.95), "{f}");
             let concat = format!("{}_tiles", f["node"].as_str().unwrap());
             assert_eq!(shipped.graph.as_ref().unwrap().node.iter().any(|n| n.name == concat), chosen, "{f}");
         }
@@ -97,7 +97,7 @@ fn tract_target_refuses_an_unbound_blur_map_input() {
 fn tract_target_weighs_int8_against_its_float_model() {
     let dir = tempfile::tempdir().unwrap();
     let recipe = dir.path().join("int8.yaml");
-    std::fs::write(&recipe, std::fs::read_to_string(repo().join("passes/detect-int8.yaml")).unwrap().replace("calib_frames: 64", "calib_frames: 6, analysis_frames: 2, held_out_frames: 2")).unwrap();
+    std::fs::write(&recipe, recipe_edit("passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 6, analysis_frames: 2, held_out_frames: 2")).unwrap();
     let out = dir.path().join("int8");
     let r = cli(&["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "--target", "tract", "--threads", "2", "-o", out.to_str().unwrap(), "--json"]);
     assert_eq!(r.code, 0, "{}", r.stderr);
@@ -107,6 +107,10 @@ fn tract_target_weighs_int8_against_its_float_model() {
     let why = check["int8"].as_str().unwrap_or_else(|| panic!("tract.yaml says what it did with INT8: {check}"));
     let shipped = load(&out.join("model.onnx"));
     let quantized = shipped.graph.as_ref().unwrap().node.iter().any(|n| n.op_type == "QuantizeLinear" || n.op_type == "QLinearConv");
+    // The decision follows the two timings it reports.
+    let ms: Vec<f64> = why.split(" ms").filter_map(|s| s.rsplit(' ').next()?.parse().ok()).collect();
+    let [int8_ms, float_ms] = ms[..] else { panic!("two timings in: {why}") };
+    assert_eq!(why.starts_with("kept"), int8_ms < float_ms, "{why}");
     if why.starts_with("kept") {
         assert!(quantized, "{why}");
     } else {

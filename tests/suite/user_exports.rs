@@ -82,7 +82,7 @@ fn detect_int8_runs_on_every_export() {
     let recipe = dir.path().join("int8.yaml");
     // The exports' random weights leave INT8 objectness near cosine 0.8 against float: this
     // test is about calibrating every export, so the hard limit (tests/quantize.rs) is lifted.
-    std::fs::write(&recipe, std::fs::read_to_string(repo().join("passes/detect-int8.yaml")).unwrap().replace("calib_frames: 64", "calib_frames: 6, analysis_frames: 2, held_out_frames: 2, hard_limit: {max_rel_l2: 1.0e9, min_cosine: -1}")).unwrap();
+    std::fs::write(&recipe, recipe_edit("passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 6, analysis_frames: 2, held_out_frames: 2, hard_limit: {max_rel_l2: 1.0e9, min_cosine: -1}")).unwrap();
     for name in ["detonly", "3ch", "constw"] {
         let model = export(name);
         let out = dir.path().join(name);
@@ -123,7 +123,7 @@ fn a_detector_that_is_not_pdinet_gets_the_lossless_passes_and_int8() {
     assert!(errors.len() == 1 && errors[0].contains("no PALS-Bridge") && errors[0].contains("without --psf"), "{}", with_psf.stderr);
 
     let recipe = dir.path().join("int8.yaml");
-    std::fs::write(&recipe, std::fs::read_to_string(repo().join("passes/detect-int8.yaml")).unwrap().replace("calib_frames: 64", "calib_frames: 6, analysis_frames: 2, held_out_frames: 2")).unwrap();
+    std::fs::write(&recipe, recipe_edit("passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 6, analysis_frames: 2, held_out_frames: 2")).unwrap();
     let r = cli(&["compile", model.to_str().unwrap(), "--pipeline", recipe.to_str().unwrap(), "-o", dir.path().join("int8").to_str().unwrap()]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     assert!(inspect(&dir.path().join("int8/model.onnx"))["ops"]["QuantizeLinear"].as_u64().unwrap_or(0) > 10);

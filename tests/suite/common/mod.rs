@@ -87,3 +87,11 @@ pub fn eval_set(dir: &Path) -> PathBuf {
     assert_eq!(r.code, 0, "{}", r.stderr);
     set.join("degraded")
 }
+
+/// The text of the shipped recipe `recipe` (repo-relative) with `from` replaced by `to`;
+/// fails if the recipe no longer has `from` (an edit that replaces nothing tests nothing).
+pub fn recipe_edit(recipe: &str, from: &str, to: &str) -> String {
+    let text = std::fs::read_to_string(repo().join(recipe)).unwrap_or_else(|e| panic!("{recipe}: {e}"));
+    assert!(text.contains(from), "{recipe} has no '{from}' to replace");
+    text.replace(from, to)
+}
