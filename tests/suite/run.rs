@@ -140,7 +140,7 @@ fn stretch(values: &[u16]) -> (f32, f32) {
 #[test]
 fn pictures_show_each_box_in_its_class_colour_over_the_stretched_frame() {
     let dir = tempfile::tempdir().unwrap();
-    let data = eval_set(dir.path());
+    let data = eval_frames(dir.path(), 8);
     let frame = data.join("000003.png");
     let out = dir.path().join("run");
     run(&[V5, "--frames", frame.to_str().unwrap(), "--psf", PSF, "-o", out.to_str().unwrap(), "--json"]);
@@ -171,7 +171,7 @@ fn pictures_show_each_box_in_its_class_colour_over_the_stretched_frame() {
 #[test]
 fn the_example_prints_detections_of_a_compiled_artifact() {
     let dir = tempfile::tempdir().unwrap();
-    let data = eval_set(dir.path());
+    let data = eval_frames(dir.path(), 8);
     let frames = dir.path().join("few");
     std::fs::create_dir(&frames).unwrap();
     for i in 0..3 {
@@ -197,7 +197,7 @@ fn the_example_prints_detections_of_a_compiled_artifact() {
 #[test]
 fn bad_frames_exit_2_naming_the_file_and_write_nothing() {
     let dir = tempfile::tempdir().unwrap();
-    let data = eval_set(dir.path());
+    let data = eval_frames(dir.path(), 8);
     let good = std::fs::read(data.join("000000.png")).unwrap();
     let float_tiff = {
         let img = image::Rgb32FImage::from_pixel(8, 8, image::Rgb([0.5, 0.5, 0.5]));
@@ -250,7 +250,7 @@ fn by_file(path: &Path) -> std::collections::BTreeMap<String, Vec<(usize, f32, [
 #[test]
 fn run_rknn_py_on_the_simulator_finds_what_run_finds() {
     let dir = tempfile::tempdir().unwrap();
-    let data = eval_set(dir.path());
+    let data = eval_frames(dir.path(), 8);
     let frames = dir.path().join("few");
     std::fs::create_dir(&frames).unwrap();
     for i in 0..6 {

@@ -79,11 +79,16 @@ pub fn rel_l2(a: &Tensor, b: &Tensor) -> f64 {
 /// `dir` by the Rust physics pipeline: 200 labelled 256x192 frames (seed 2, q 90); returns
 /// the frames' folder.
 pub fn eval_set(dir: &Path) -> PathBuf {
+    eval_frames(dir, 200)
+}
+
+/// The first `n` frames of the held-out set's recipe (for tests that need a few frames).
+pub fn eval_frames(dir: &Path, n: usize) -> PathBuf {
     let psf = dir.join("psf");
     let r = cli(&["psf", "simulate", "--lens", "calib/lens_single_lwir.yaml", "-o", psf.to_str().unwrap()]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let set = dir.join("eval");
-    let r = cli(&["dataset", set.to_str().unwrap(), "--psf", psf.to_str().unwrap(), "--n", "200", "--q", "90", "--seed", "2", "--min-box", "16", "--out-size", "256x192"]);
+    let r = cli(&["dataset", set.to_str().unwrap(), "--psf", psf.to_str().unwrap(), "--n", &n.to_string(), "--q", "90", "--seed", "2", "--min-box", "16", "--out-size", "256x192"]);
     assert_eq!(r.code, 0, "{}", r.stderr);
     set.join("degraded")
 }
