@@ -1,9 +1,17 @@
 //! pdi-compile: a model compiler and deployment toolchain for PDI-Net.
 //!
-//! Module map: `onnx` (schema, I/O), `ir` (graph index, shapes, costs), `analysis`
-//! (recognizing PDI-Net's parts), `pipeline` (passes and recipes), `runtime` (ONNX Runtime
-//! and tract behind one interface), `inspect` and `compile` (the commands), `targets` (what
-//! ships for tract and the RK3588 NPU), `bench` (run time against error), `cli`.
+//! Layers, lowest first (a module imports from its own layer or below; the imports that still
+//! point up are listed, to be removed, in `tests/suite/layers.rs`, which checks this map):
+//! 1. `tensor`, `fsutil`, `warn`, `canvas`: values, atomic files, warnings, drawing;
+//! 2. `onnx` (schema, I/O, edits), `ir` (graph index, shapes, costs);
+//! 3. `analysis` (PDI-Net's parts), `metrics`, `detect` (decode, NMS, split heads), `optics`
+//!    (PSFs, blur maps, degradation), `inspect`;
+//! 4. `runtime` (ONNX Runtime and tract), `frames`, `dataset`, `calib_frames`, `pyenv`;
+//! 5. analyses and rewrites: `prune`, `quant`, `scene`, `targets`;
+//! 6. `passes` (one pass per file); 7. `pipeline` (recipes, the pass registry);
+//! 8. shared by the commands: `deploy` (running an artifact: `deploy::Detector`), `verify`
+//!    (comparing two models), `manifest`;
+//! 9. commands: `compile`, `rebuild`, `run`, `ship`, `bench`, `stress`, `cli`, `fuzz_targets`.
 
 pub mod analysis;
 pub mod bench;

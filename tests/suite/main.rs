@@ -11,6 +11,7 @@ mod compile_detect_f32;
 mod compile_identity;
 mod fuzz_corpus;
 mod inspect_fixtures;
+mod layers;
 mod onnx_node_tests;
 mod optics;
 mod passes_unit;
