@@ -48,6 +48,11 @@ pub fn svg(shapes: &[Shape], width: u32, height: u32) -> String {
 pub fn png(shapes: &[Shape], width: u32, height: u32) -> Result<Vec<u8>> {
     let mut img = image::RgbImage::from_pixel(width, height, image::Rgb([255, 255, 255]));
     paint(&mut img, shapes);
+    encode_png(&img)
+}
+
+/// PNG bytes of a picture.
+pub fn encode_png(img: &image::RgbImage) -> Result<Vec<u8>> {
     let mut bytes = std::io::Cursor::new(Vec::new());
     img.write_to(&mut bytes, image::ImageFormat::Png)?;
     Ok(bytes.into_inner())

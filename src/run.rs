@@ -143,22 +143,21 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
 }
 
 fn latency(load_ms: f64, times: &[Vec<f64>; 3]) -> Latency {
-    let medians: Vec<f64> = times
+    let sorted: Vec<Vec<f64>> = times
         .iter()
         .map(|t| {
             let mut s = t.clone();
             s.sort_by(f64::total_cmp);
-            percentile(&s, 0.5)
+            s
         })
         .collect();
-    let total: f64 = medians.iter().sum();
-    let stage = |k: usize| {
-        let mut s = times[k].clone();
-        s.sort_by(f64::total_cmp);
-        StageTimes { median_ms: medians[k], p95_ms: percentile(&s, 0.95), p99_ms: percentile(&s, 0.99), share: if total > 0.0 { medians[k] / total } else { 0.0 } }
+    let total: f64 = sorted.iter().map(|s| percentile(s, 0.5)).sum();
+    let stage = |s: &[f64]| {
+        let median_ms = percentile(s, 0.5);
+        StageTimes { median_ms, p95_ms: percentile(s, 0.95), p99_ms: percentile(s, 0.99), share: if total > 0.0 { median_ms / total } else { 0.0 } }
     };
     let summed: f64 = times.iter().flatten().sum();
-    Latency { load_ms, preprocess: stage(0), inference: stage(1), decode_nms: stage(2), frames_per_second: if summed > 0.0 { times[0].len() as f64 / (summed / 1e3) } else { 0.0 } }
+    Latency { load_ms, preprocess: stage(&sorted[0]), inference: stage(&sorted[1]), decode_nms: stage(&sorted[2]), frames_per_second: if summed > 0.0 { times[0].len() as f64 / (summed / 1e3) } else { 0.0 } }
 }
 
 /// Indices of `a`'s detections with no detection of `b` of the same class at IoU ≥ 0.5.
@@ -218,7 +217,7 @@ pub fn run(req: &RunRequest) -> Result<RunReport> {
                 draw::side_by_side(&[(&short(&req.artifact), &left), (&short(&o.artifact_path), &right)])
             }
         };
-        write_atomic(&dir.join("images").join(format!("{stem}.png")), &draw::png(&picture)?)?;
+        write_atomic(&dir.join("images").join(format!("{stem}.png")), &crate::canvas::encode_png(&picture)?)?;
         write_atomic(&dir.join("labels").join(format!("{stem}.txt")), yolo_lines(&dets, &frame).as_bytes())?;
         for d in &dets {
             let name = this.class_name(d.class).to_string();
@@ -246,7 +245,7 @@ pub fn run(req: &RunRequest) -> Result<RunReport> {
     let categories: Vec<serde_json::Value> = this.class_names().iter().enumerate().map(|(i, n)| serde_json::json!({ "id": i, "name": n })).collect();
     write_atomic(&dir.join("detections.json"), serde_json::to_string_pretty(&results)?.as_bytes())?;
     let sheet_png = draw::contact_sheet(&sheet, 4, if other.is_some() { 520 } else { 320 });
-    write_atomic(&dir.join("contact_sheet.png"), &draw::png(&sheet_png)?)?;
+    write_atomic(&dir.join("contact_sheet.png"), &crate::canvas::encode_png(&sheet_png)?)?;
     let report = RunReport {
         frames: files.len(),
         source: req.frames.display().to_string(),

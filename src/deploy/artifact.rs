@@ -42,7 +42,12 @@ impl Artifact {
             bail!("{}: no such artifact (a folder compile or ship wrote, or a model file)", path.display());
         }
         if path.join("ship.json").is_file() {
-            let variants: Vec<String> = ["f32", "pruned-f32", "pruned-int8", "rknn"].iter().filter(|v| path.join(v).join("model.onnx").is_file()).map(|v| v.to_string()).collect();
+            let mut variants: Vec<String> = std::fs::read_dir(path)?
+                .filter_map(|e| e.ok())
+                .filter(|e| e.path().join("model.onnx").is_file())
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .collect();
+            variants.sort();
             bail!("{} is a ship folder with several artifacts: give one of its variants ({})", path.display(), variants.join(", "));
         }
         let model = path.join("model.onnx");

@@ -5,7 +5,6 @@
 use crate::canvas::{paint, Shape};
 use crate::detect::Detection;
 use super::Image;
-use anyhow::Result;
 use image::RgbImage;
 
 /// Box outline width in pixels.
@@ -110,11 +109,4 @@ pub fn contact_sheet(pictures: &[(String, RgbImage)], columns: usize, tile: u32)
         paint(&mut out, &[Shape::Text { at: (x as f64, y as f64 + 11.0), text: caption, color: [0, 0, 0], scale: 1, centered: false }]);
     }
     out
-}
-
-/// PNG bytes of a picture.
-pub fn png(img: &RgbImage) -> Result<Vec<u8>> {
-    let mut bytes = std::io::Cursor::new(Vec::new());
-    img.write_to(&mut bytes, image::ImageFormat::Png)?;
-    Ok(bytes.into_inner())
 }

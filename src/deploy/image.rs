@@ -36,9 +36,6 @@ impl Image {
     }
 }
 
-/// Frame files extensions `run` reads.
-const EXTENSIONS: [&str; 4] = ["png", "tif", "tiff", "npy"];
-
 /// The frames `spec` names, in order: a file; a folder's frame files sorted by name; or a
 /// numbered sequence `name%0Nd.ext` read from the first number that exists (0 or 1) until
 /// the next is missing.
@@ -48,16 +45,7 @@ pub fn list(spec: &Path) -> Result<Vec<PathBuf>> {
         return sequence(&text, at);
     }
     if spec.is_dir() {
-        let mut v: Vec<PathBuf> = std::fs::read_dir(spec)
-            .with_context(|| format!("cannot read {}", spec.display()))?
-            .filter_map(|e| e.ok().map(|e| e.path()))
-            .filter(|p| p.is_file() && p.extension().and_then(|e| e.to_str()).is_some_and(|e| EXTENSIONS.contains(&e.to_ascii_lowercase().as_str())))
-            .collect();
-        v.sort();
-        if v.is_empty() {
-            bail!("{}: no frames (PNG, TIFF or .npy files) in this folder", spec.display());
-        }
-        return Ok(v);
+        return crate::dataset::image_files(spec);
     }
     if !spec.exists() {
         bail!("{}: no such frame, folder or sequence", spec.display());

@@ -27,14 +27,15 @@ use crate::analysis::head::{Head, HeadKind};
 use crate::detect::split_head::{self, HeadLayout};
 use crate::detect::{decode, nms::nms, Detection};
 use crate::runtime::{self, Engine, Runtime};
-use crate::scene::{Roi, SceneMeta};
+use crate::scene::SceneMeta;
 use crate::tensor::Tensor;
 use anyhow::{anyhow, bail, Result};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-/// Validation's candidate threshold (YOLO val): what mAP against labels is computed from.
+/// Validation's candidate threshold (YOLO val): low, so the precision-recall curve is
+/// complete; what mAP against labels is computed from, here and in `verify`.
 pub const EVAL_CONF: f32 = 0.001;
 /// A deployment's usual score cut (ultralytics predict's default).
 pub const DEFAULT_CONF: f32 = 0.25;
@@ -70,7 +71,8 @@ enum Decoder {
 
 /// A model's outputs for one frame, and the seconds its first two stages took.
 pub struct Outputs {
-    pub tensors: Vec<(String, Tensor)>,
+    /// By output name (the split head's decode looks its tensors up by name).
+    pub tensors: HashMap<String, Tensor>,
     /// The camera frame's (height, width).
     pub size: (usize, usize),
     pub preprocess: f64,
@@ -94,7 +96,6 @@ pub struct Detector {
     channels: usize,
     /// The frame the model's boxes are in: (height, width) of the full input, before any ROI crop.
     frame: (usize, usize),
-    roi: Option<Roi>,
     scene: Option<SceneMeta>,
     other_inputs: Vec<(String, Tensor)>,
     decoder: Decoder,
@@ -115,8 +116,7 @@ impl Detector {
         let side = input::ModelInput::of(&model, "the artifact's model")?;
         let scene = SceneMeta::read(&model)?;
         let frame = scene.as_ref().map_or(side.shape, |s| (s.frame[0], s.frame[1]));
-        let roi = scene.as_ref().and_then(|s| s.roi);
-        let expected = roi.map_or(frame, |r| (r.h, r.w));
+        let expected = scene.as_ref().and_then(|s| s.roi).map_or(frame, |r| (r.h, r.w));
         if expected != side.shape {
             bail!("the model takes {:?} frames but its scene says {:?}", side.shape, expected);
         }
@@ -128,13 +128,9 @@ impl Detector {
         } else {
             bail!("{}: the model has no decoded YOLOv5/YOLOv8 output and no split-head layout to decode", artifact.model.display());
         };
-        let kind = match &decoder {
-            Decoder::Dense(h) => h.kind,
-            Decoder::Split(l) => l.kind,
-        };
-        let classes = match &decoder {
-            Decoder::Dense(h) => h.classes.unwrap_or(0),
-            Decoder::Split(l) => l.classes,
+        let (kind, classes) = match &decoder {
+            Decoder::Dense(h) => (h.kind, h.classes.unwrap_or(0)),
+            Decoder::Split(l) => (l.kind, l.classes),
         };
         let names = crate::scene::class_names(&model).filter(|n| n.len() == classes).unwrap_or_else(|| (0..classes).map(|i| i.to_string()).collect());
         let blur = opts.psf.as_deref().map(input::blur_input).transpose()?;
@@ -155,30 +151,30 @@ impl Detector {
         if !(0.0..1.0).contains(&conf) || !(0.0..=1.0).contains(&iou) || max_det == 0 {
             bail!("--conf must be in [0, 1), --iou in [0, 1] and --max-det at least 1 (got {conf}, {iou}, {max_det})");
         }
-        let mut d = Detector {
+        // The runtime is built with a feed of the input's shape: engines fix shapes up front.
+        let (h, w) = side.shape;
+        let mut first = vec![(side.image_input.clone(), Tensor::f32(vec![1, side.channels, h, w], vec![0.0; side.channels * h * w]))];
+        first.extend(other_inputs.iter().cloned());
+        let t = Instant::now();
+        let runtime = runtime::load(engine, &model, &first, threads)?;
+        Ok(Detector {
             engine,
             threads,
             conf,
             iou,
             max_det,
-            load_seconds: 0.0,
-            image_input: side.image_input.clone(),
+            load_seconds: t.elapsed().as_secs_f64(),
+            image_input: side.image_input,
             channels: side.channels,
             frame,
-            roi,
             scene,
             other_inputs,
             decoder,
             names,
-            runtime: Box::new(NotLoaded),
+            runtime,
             artifact_path: path.to_path_buf(),
             artifact,
-        };
-        let first = d.feeds(&Image { width: frame.1, height: frame.0, data: vec![0.0; frame.0 * frame.1], bits: 32 })?;
-        let t = Instant::now();
-        d.runtime = runtime::load(engine, &model, &first, threads)?;
-        d.load_seconds = t.elapsed().as_secs_f64();
-        Ok(d)
+        })
     }
 
     /// Detections on one frame above the detector's `conf`, in the frame's own pixel
@@ -194,7 +190,8 @@ impl Detector {
         let feeds = self.feeds(frame)?;
         let t1 = Instant::now();
         let tensors = self.runtime.run(&feeds)?;
-        Ok(Outputs { tensors, size: (frame.height, frame.width), preprocess: (t1 - t0).as_secs_f64(), inference: t1.elapsed().as_secs_f64() })
+        let inference = t1.elapsed().as_secs_f64();
+        Ok(Outputs { tensors: tensors.into_iter().collect(), size: (frame.height, frame.width), preprocess: (t1 - t0).as_secs_f64(), inference })
     }
 
     /// Detections above `conf` (validation decodes at [`EVAL_CONF`]) after class-aware NMS,
@@ -235,7 +232,7 @@ impl Detector {
         let (h, w) = self.frame;
         let data = if (frame.height, frame.width) == (h, w) { frame.data.clone() } else { crate::dataset::resize_area(&frame.data, frame.width, frame.height, w, h) };
         let mut image = Tensor::f32(vec![1, 1, h, w], data);
-        if let Some(r) = self.roi {
+        if let Some(r) = self.scene.as_ref().and_then(|s| s.roi) {
             image = r.crop(&image).ok_or_else(|| anyhow!("the frame does not hold the ROI"))?;
         }
         let mut v = vec![(self.image_input.clone(), crate::calib_frames::replicate(&image, self.channels))];
@@ -244,28 +241,14 @@ impl Detector {
     }
 
     /// Detections above `conf` after class-aware NMS, in the model's frame coordinates.
-    fn decode(&self, outputs: &[(String, Tensor)], conf: f32) -> Result<Vec<Detection>> {
+    fn decode(&self, outputs: &HashMap<String, Tensor>, conf: f32) -> Result<Vec<Detection>> {
         match &self.decoder {
             Decoder::Dense(head) => {
                 let name = head.output.as_deref().unwrap_or_default();
-                let t = outputs.iter().find(|(n, _)| n == name).map(|(_, t)| t).ok_or_else(|| anyhow!("output {name} missing"))?;
+                let t = outputs.get(name).ok_or_else(|| anyhow!("output {name} missing"))?;
                 Ok(nms(decode::candidates(head.kind, t, conf)?, self.iou, self.max_det))
             }
-            Decoder::Split(layout) => {
-                let out: HashMap<String, Tensor> = outputs.iter().cloned().collect();
-                Ok(split_head::detect(layout, &out, conf, self.iou, self.max_det)?.0)
-            }
+            Decoder::Split(layout) => Ok(split_head::detect(layout, outputs, conf, self.iou, self.max_det)?.0),
         }
-    }
-}
-
-/// The runtime's place before the model is loaded (the first feed needs the detector).
-struct NotLoaded;
-impl Runtime for NotLoaded {
-    fn name(&self) -> &'static str {
-        "none"
-    }
-    fn run(&mut self, _: &[(String, Tensor)]) -> Result<runtime::NamedTensors> {
-        bail!("the model is not loaded")
     }
 }

@@ -12,6 +12,7 @@ pub mod latency;
 
 use crate::analysis::head::{Head, HeadKind};
 use crate::deploy::input::ModelInput;
+use crate::deploy::{default_iou, DEFAULT_MAX_DET, EVAL_CONF};
 use crate::detect::{decode, nms::nms, Detection};
 use crate::frames::{self, Frame};
 use crate::metrics::coco_map::{coco_map, MapResult, Truth};
@@ -25,15 +26,11 @@ use gate::{Check, Gate};
 use serde::Serialize;
 use std::path::PathBuf;
 
-/// YOLO validation's candidate threshold: low, so the precision-recall curve is complete.
-const EVAL_CONF: f32 = 0.001;
 /// A reference detection counts as an object to agree on from this score (a deployment's usual cut).
 pub(crate) const AGREEMENT_CONF: f32 = 0.25;
 /// COCO scores at most this many detections per frame and class; truths are capped alike so
 /// that a candidate identical to the reference scores 1.
 const TRUTH_PER_CLASS: usize = 100;
-/// Detections kept per frame after NMS (ultralytics' max_det).
-const MAX_DET: usize = 300;
 
 pub struct VerifyRequest {
     pub reference: PathBuf,
@@ -136,8 +133,8 @@ pub(crate) fn feeds(side: &Side, frame: &Frame, psf: Option<&Tensor>) -> Result<
 pub(crate) fn detections(head: &Head, outputs: &[(String, Tensor)]) -> Result<Vec<Detection>> {
     let name = head.output.as_deref().ok_or_else(|| anyhow!("no detection output"))?;
     let t = &outputs.iter().find(|(n, _)| n == name).ok_or_else(|| anyhow!("output {name} missing"))?.1;
-    let iou = if head.kind == HeadKind::Yolov8Dfl { 0.7 } else { 0.6 }; // ultralytics val defaults
-    Ok(nms(decode::candidates(head.kind, t, EVAL_CONF)?, iou, MAX_DET))
+    // Validation's decode: what `run` (deploy) computes mAP from too.
+    Ok(nms(decode::candidates(head.kind, t, EVAL_CONF)?, default_iou(head.kind), DEFAULT_MAX_DET))
 }
 
 pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {

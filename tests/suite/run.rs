@@ -33,12 +33,38 @@ fn map50_95(v: &Value) -> f64 {
 /// Boxes (xyxy) and scores per frame from run's detections.json (COCO xywh).
 fn boxes(path: &Path, frames: usize) -> Vec<Vec<([f32; 4], f32, usize)>> {
     let mut per = vec![Vec::new(); frames];
-    for d in json(path).as_array().unwrap() {
-        let b: Vec<f32> = d["bbox"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();
-        let i = d["image_id"].as_u64().unwrap() as usize - 1;
-        per[i].push(([b[0], b[1], b[0] + b[2], b[1] + b[3]], d["score"].as_f64().unwrap() as f32, d["category_id"].as_u64().unwrap() as usize));
+    for d in coco_results(path) {
+        per[d.image_id - 1].push((d.bbox, d.score, d.class));
     }
     per
+}
+
+struct Found {
+    image_id: usize,
+    file: String,
+    class: usize,
+    score: f32,
+    /// xyxy
+    bbox: [f32; 4],
+}
+
+/// A COCO results list (bbox xywh) as written by `run` and `run_rknn.py`.
+fn coco_results(path: &Path) -> Vec<Found> {
+    json(path)
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| {
+            let b: Vec<f32> = d["bbox"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();
+            Found {
+                image_id: d["image_id"].as_u64().unwrap() as usize,
+                file: d["file_name"].as_str().unwrap().to_string(),
+                class: d["category_id"].as_u64().unwrap() as usize,
+                score: d["score"].as_f64().unwrap() as f32,
+                bbox: [b[0], b[1], b[0] + b[2], b[1] + b[3]],
+            }
+        })
+        .collect()
 }
 
 #[test]
@@ -171,13 +197,7 @@ fn pictures_show_each_box_in_its_class_colour_over_the_stretched_frame() {
 #[test]
 fn the_example_prints_detections_of_a_compiled_artifact() {
     let dir = tempfile::tempdir().unwrap();
-    let data = eval_frames(dir.path(), 8);
-    let frames = dir.path().join("few");
-    std::fs::create_dir(&frames).unwrap();
-    for i in 0..3 {
-        let name = format!("00000{i}.png");
-        std::fs::copy(data.join(&name), frames.join(&name)).unwrap();
-    }
+    let frames = eval_frames(dir.path(), 3);
     let art = dir.path().join("f32");
     compile("passes/detect-f32.yaml", &art, &[]);
     // cargo test builds the examples beside the test binary's folder.
@@ -240,9 +260,8 @@ fn bad_frames_exit_2_naming_the_file_and_write_nothing() {
 /// Detections (class, score, xyxy) per file name from a COCO results list.
 fn by_file(path: &Path) -> std::collections::BTreeMap<String, Vec<(usize, f32, [f32; 4])>> {
     let mut m = std::collections::BTreeMap::<String, Vec<_>>::new();
-    for d in json(path).as_array().unwrap() {
-        let b: Vec<f32> = d["bbox"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();
-        m.entry(d["file_name"].as_str().unwrap().to_string()).or_default().push((d["category_id"].as_u64().unwrap() as usize, d["score"].as_f64().unwrap() as f32, [b[0], b[1], b[0] + b[2], b[1] + b[3]]));
+    for d in coco_results(path) {
+        m.entry(d.file).or_default().push((d.class, d.score, d.bbox));
     }
     m
 }
@@ -250,13 +269,7 @@ fn by_file(path: &Path) -> std::collections::BTreeMap<String, Vec<(usize, f32, [
 #[test]
 fn run_rknn_py_on_the_simulator_finds_what_run_finds() {
     let dir = tempfile::tempdir().unwrap();
-    let data = eval_frames(dir.path(), 8);
-    let frames = dir.path().join("few");
-    std::fs::create_dir(&frames).unwrap();
-    for i in 0..6 {
-        let name = format!("00000{i}.png");
-        std::fs::copy(data.join(&name), frames.join(&name)).unwrap();
-    }
+    let frames = eval_frames(dir.path(), 6);
     let rknn = dir.path().join("rknn");
     compile("passes/detect-rknn.yaml", &rknn, &["--target", "rknn"]);
     assert!(rknn.join("run_rknn.py").is_file(), "the RKNN folder carries its runner");
