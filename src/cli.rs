@@ -292,6 +292,10 @@ pub enum Command {
         /// Timed runs per model and engine.
         #[arg(long, default_value_t = 20)]
         runs: usize,
+        /// The share of the original's mAP (against labels, else the agreement with its
+        /// detections) an artifact must keep to be recommended for a CPU target.
+        #[arg(long, default_value_t = 0.9)]
+        min_kept: f64,
         /// Threads for ONNX Runtime and tract alike (default: every core).
         #[arg(long)]
         threads: Option<usize>,
@@ -529,11 +533,14 @@ pub fn run(cli: Cli) -> Result<u8> {
                 println!("wrote {}", crate::bench::out_files(&out));
             }
         }
-        Command::Ship { model, out, psf, calib, data, frames, recover_steps, runs, threads, json } => {
+        Command::Ship { model, out, psf, calib, data, frames, recover_steps, runs, min_kept, threads, json } => {
             if runs == 0 || frames == 0 {
                 anyhow::bail!("--runs and --frames must be at least 1");
             }
-            let r = crate::ship::ship(&crate::ship::ShipRequest { model, out, psf, calib, data, frames, recover_steps, runs, threads: threads_or_all(threads)? })?;
+            if !(0.0..=1.0).contains(&min_kept) {
+                anyhow::bail!("--min-kept {min_kept} must lie in [0, 1]");
+            }
+            let r = crate::ship::ship(&crate::ship::ShipRequest { model, out, psf, calib, data, frames, recover_steps, runs, min_kept, threads: threads_or_all(threads)? })?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);
             } else {

@@ -11,7 +11,8 @@
 //! 6. `passes` (one pass per file); 7. `pipeline` (recipes, the pass registry);
 //! 8. shared by the commands: `deploy` (running an artifact: `deploy::Detector`), `verify`
 //!    (comparing two models), `manifest`;
-//! 9. commands: `compile`, `rebuild`, `run`, `ship`, `bench`, `stress`, `cli`, `fuzz_targets`.
+//! 9. commands: `compile`, `rebuild`, `run`, `ship`, `bench`, `stress`, `cli`, `fuzz_targets`,
+//!    `reference` (the generated docs/reference/).
 
 pub mod analysis;
 pub mod bench;
@@ -36,6 +37,7 @@ pub mod pipeline;
 pub mod pyenv;
 pub mod quant;
 pub mod rebuild;
+pub mod reference;
 pub mod run;
 pub mod prune;
 pub mod runtime;

@@ -42,10 +42,26 @@ pub fn toolkit_python() -> Result<PathBuf> {
             Ok(())
         };
         run(Command::new(&base).args(["-m", "venv"]).arg(&venv), "creating the rknn-toolkit2 venv (it needs Python 3.11: install python3.11 or set PDI_RKNN_BASE_PYTHON)")?;
-        run(Command::new(venv.join("bin/pip")).args(["install", "-q", "--disable-pip-version-check"]).args(TOOLKIT_PINS), "pip install rknn-toolkit2==2.5.0")?;
+        let started = std::time::Instant::now();
+        let mut pip = Command::new(venv.join("bin/pip")).args(["install", "-q", "--disable-pip-version-check"]).args(TOOLKIT_PINS).spawn().context("pip install rknn-toolkit2==2.5.0: cannot start it")?;
+        // pip -q is silent for minutes: say that it is still working.
+        let status = loop {
+            if let Some(s) = pip.try_wait()? {
+                break s;
+            }
+            std::thread::sleep(std::time::Duration::from_secs(1));
+            let t = started.elapsed().as_secs();
+            if t > 0 && t % 30 == 0 {
+                eprintln!("  still installing ({t} s; {:.1} GB so far)", dir_bytes(&venv) as f64 / 1e9);
+            }
+        };
+        if !status.success() {
+            bail!("pip install rknn-toolkit2==2.5.0 failed ({status})");
+        }
         if !imports(&python) {
             bail!("rknn-toolkit2 installed into {} but does not import; delete that folder and retry", venv.display());
         }
+        eprintln!("installed rknn-toolkit2 2.5.0 and torch: {:.1} GB in {:.0} s", dir_bytes(&venv) as f64 / 1e9, started.elapsed().as_secs_f64());
     }
     std::fs::write(venv.join(STAMP), b"")?;
     Ok(python)
@@ -94,6 +110,22 @@ pub fn run_worker(dir: &Path, script: (&str, &str), companions: &[(&str, &str)],
         Some(d) => Ok(d),
         None => bail!("{} failed ({status}): {}", script.0, err.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message")),
     }
+}
+
+/// Bytes under `dir` (files only; links not followed).
+fn dir_bytes(dir: &Path) -> u64 {
+    let mut total = 0;
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).into_iter().flatten().flatten() {
+            match e.file_type() {
+                Ok(t) if t.is_dir() => stack.push(e.path()),
+                Ok(t) if t.is_file() => total += e.metadata().map_or(0, |m| m.len()),
+                _ => {}
+            }
+        }
+    }
+    total
 }
 
 fn cache() -> Result<PathBuf> {

@@ -130,7 +130,7 @@ impl Failed {
 pub(crate) fn last_pass_of(text: &str, name: &str) -> Result<String> {
     let r = Recipe::parse(text)?;
     let last = r.passes.last().cloned().ok_or_else(|| anyhow!("built-in recipe {} has no passes", r.name))?;
-    Recipe { name: name.into(), description: format!("the last pass of {}", r.name), passes: vec![last] }.to_yaml()
+    Recipe { name: name.into(), description: format!("the last pass of {}", r.name), bases: Vec::new(), passes: vec![last] }.to_yaml()
 }
 
 /// `text` with its recovery's total step budget set to `steps` (unchanged when None), shared

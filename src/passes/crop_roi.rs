@@ -39,6 +39,9 @@ const MAX_HALO_ROWS: usize = 4;
 #[derive(serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Options {
+    /// What stands in for the pixels outside the ROI at each padded convolution: `linear` (a 1x1
+    /// convolution of the edge rows plus an intercept, fitted to the full model), `mean` (the
+    /// fitted mean alone) or `zero` (plain zero padding).
     pub halo: Mode,
     /// Rows (columns) in from the ROI's edge each halo reads: 1, the edge alone, is cheapest
     /// (a 1x1 convolution) and agreed best. Measured on the trained models' ROI crop (200
@@ -60,6 +63,7 @@ pub struct Options {
     /// full model's. Off by default: it runs the crop once per wave (38 waves on the trained
     /// w0.25 models: crop-roi took 16-23 s instead of 2-3), and alone it agreed no better.
     pub closed_loop: bool,
+    /// Seed of the simulated calibration frames (when no `--calib`).
     pub seed: u64,
 }
 

@@ -48,6 +48,7 @@ pub struct Options {
     /// A level with at most this share of the in-range detections is dropped: 0.5% keeps the
     /// measured agreement on in-range detections near 0.995 at worst.
     pub max_share: f64,
+    /// Seed of the simulated calibration frames (when no `--calib`).
     pub seed: u64,
 }
 

@@ -37,10 +37,16 @@ use std::collections::HashMap;
 pub struct Options {
     /// Fraction of each group's channels removed.
     pub ratio: f64,
+    /// How channels are ranked: `l1` or `l2` norm of their weights, `bn_gamma` (|gamma| of their
+    /// BatchNorm; L1 where there is none), `activation` (mean |activation| on calibration frames).
     pub importance: Criterion,
+    /// `uniform`: the same ratio in every group; `global`: one threshold on group-normalized
+    /// importance across the model. Ignored with `target`.
     pub scope: Scope,
     /// Kept channel counts are multiples of this (8 for CPUs' SIMD lanes, 16 for RKNN).
     pub round_to: usize,
+    /// What repairs the layers after a cut: `none`, `bias` (mean-shift of the biases), `lstsq`
+    /// (ridge refit of the next dense convolution, then the mean shift).
     pub compensate: Mode,
     /// Calibration frames used (from `--calib` or simulated); every 4th is held out to
     /// measure the result.
@@ -49,6 +55,7 @@ pub struct Options {
     pub ridge: f64,
     /// Values or node names whose channels must all stay.
     pub ignore: Vec<String>,
+    /// Seed of the simulated calibration frames (when no `--calib`).
     pub seed: u64,
     /// A budget instead of one ratio: per-group ratios from measured sensitivity.
     pub target: Option<Target>,

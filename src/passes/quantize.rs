@@ -33,9 +33,12 @@ use std::collections::{BTreeSet, HashMap, HashSet};
 #[derive(serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Options {
+    /// How activation ranges are chosen: `mse` (the clip with the least expected squared error),
+    /// `minmax`, `percentile`, `entropy` (KL, as TensorRT).
     pub method: Method,
     /// Kept fraction for `percentile`, in percent.
     pub percentile: f64,
+    /// Activation type: `u8` (ONNX Runtime's fast path on x86) or `i8`.
     pub activations: ActivationType,
     /// 8, or 7 for ONNX Runtime on AVX2 without VNNI (its u8s8 kernels sum product pairs in
     /// int16, which full-range 8-bit weights saturate).
@@ -52,6 +55,7 @@ pub struct Options {
     /// Largest rel L2 of any output channel group against float; layers are kept float,
     /// most sensitive first, until it holds. None: no mixed precision.
     pub error_budget: Option<f64>,
+    /// At most this many layers kept in float by the error budget's search.
     pub max_float_layers: usize,
     /// Nodes (or their output values) to leave in float.
     pub keep_float: Vec<String>,
@@ -59,6 +63,7 @@ pub struct Options {
     /// faster without quantizing, timed on this machine (`quant::speed`). The choice follows the
     /// compiling machine; `keep_float` pins one.
     pub float_where_faster: bool,
+    /// Seed of the simulated calibration frames (when no `--calib`).
     pub seed: u64,
     /// `qdq` (ONNX Runtime fuses it) or `qlinear` (convolutions as QLinearConv, for tract).
     pub format: Format,
@@ -89,7 +94,10 @@ pub struct Options {
 #[derive(serde::Deserialize, serde::Serialize, Clone, Copy, Debug)]
 #[serde(deny_unknown_fields, default)]
 pub struct HardLimit {
+    /// Past this rel L2 from float on held-out frames, the INT8 model is broken: no artifact, exit
+    /// 1.
     pub max_rel_l2: f64,
+    /// Below this cosine with float on held-out frames, likewise.
     pub min_cosine: f64,
 }
 
@@ -114,6 +122,7 @@ pub struct Qat {
     /// weight about 0.006 of a grid step per iteration, so a few hundred steps can move it
     /// one or two steps and no further.
     pub lr: f64,
+    /// Frames per optimizer step.
     pub batch: usize,
     /// Training frames: the calibration frames, and more drawn after the held-out ones up to
     /// this count (0 or fewer than the calibration frames: those alone). A hundred epochs
@@ -130,6 +139,7 @@ pub struct Qat {
     /// values that share parameters (a data-movement op's input and output) share one scale,
     /// and each int32 bias is requantized to its input's new scale.
     pub scales: bool,
+    /// With `scales: true`: the activation scales' step, relative to the weights' step.
     pub scale_lr: f64,
     /// Weight of the YOLOv8 box edges' own error beside the DFL's KL; default: 1 from `float`
     /// (`qat::EDGE_WEIGHT`), recovery's 16 from `original`.

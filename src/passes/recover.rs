@@ -37,11 +37,14 @@ pub struct Options {
     /// Training threads (torch and the CPU teacher), fixed so that sums come out the same;
     /// 0: every core of the compiling machine, recorded in the manifest.
     pub threads: usize,
+    /// Adam's learning rate at the top of the schedule.
     pub lr: f64,
     /// Training frames (unlabelled), at most what fits in 1 GiB of pixels; 16 more are held
     /// out to judge the result.
     pub frames: usize,
+    /// Frames per optimizer step.
     pub batch: usize,
+    /// Seed of frame order, augmentation and the simulated frames.
     pub seed: u64,
     /// `cuda` or `cpu`; empty: CUDA when present.
     pub device: String,

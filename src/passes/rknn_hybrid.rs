@@ -30,6 +30,7 @@ pub struct Options {
     pub error_budget: f64,
     /// At most this many layers in FP16 (each costs NPU time).
     pub max_layers: usize,
+    /// Frames that calibrate the simulated INT8 model and measure its error.
     pub calib_frames: usize,
     /// Nodes to keep in FP16 whatever the search finds (the simulation starts with them float).
     pub fp16: Vec<String>,

@@ -53,9 +53,11 @@ pub struct Options {
     pub threads: usize,
     /// Adam's step as a fraction of each tensor's largest magnitude (as `quantize`'s `qat`).
     pub lr: f64,
+    /// Frames per optimizer step.
     pub batch: usize,
     /// Training frames (fresh augmentation each epoch).
     pub frames: usize,
+    /// Seed of frame order, augmentation and the simulated frames.
     pub seed: u64,
     /// `cuda` or `cpu`; empty: CUDA when torch sees it.
     pub device: String,

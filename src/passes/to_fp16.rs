@@ -35,6 +35,7 @@ pub struct Options {
     pub headroom: f64,
     /// Nodes (or their output values) to keep in f32.
     pub keep_float: Vec<String>,
+    /// Seed of the simulated calibration frames (when no `--calib`).
     pub seed: u64,
 }
 

@@ -149,18 +149,17 @@ pub fn check(recipe: &Recipe, input: &ModelProto, cx: &PassContext) -> Result<()
             anyhow::bail!("--psf {}: no such file", psf.display());
         }
     }
-    let at = |spec: &PassSpec| if spec.line > 0 { format!("line {}: {}", spec.line, spec.name) } else { format!("pass {}", spec.name) };
-    let passes: Vec<Box<dyn Pass>> = recipe.passes.iter().map(|s| build_pass(s).with_context(|| at(s))).collect::<Result<_>>()?;
+    let passes: Vec<Box<dyn Pass>> = recipe.passes.iter().map(|s| build_pass(s).with_context(|| s.at())).collect::<Result<_>>()?;
     let mut have: Vec<Capability> = Vec::new();
     if crate::detect::split_head::HeadLayout::from_model(input).is_ok() {
         have.push(Capability::SplitHead);
     }
     for (pass, spec) in passes.iter().zip(&recipe.passes) {
         if let Some(missing) = pass.needs().into_iter().find(|n| !have.contains(n)) {
-            anyhow::bail!("{}: needs {} from an earlier pass: {}", at(spec), serde_json::to_value(missing)?.as_str().unwrap_or("?"), missing.remedy());
+            anyhow::bail!("{}: needs {} from an earlier pass: {}", spec.at(), serde_json::to_value(missing)?.as_str().unwrap_or("?"), missing.remedy());
         }
         have.extend(pass.provides());
-        pass.preflight(input, cx).with_context(|| at(spec))?;
+        pass.preflight(input, cx).with_context(|| spec.at())?;
     }
     Ok(())
 }

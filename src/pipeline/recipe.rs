@@ -7,6 +7,11 @@
 //!   - strip-recon                 # a pass with default options
 //!   - prune: {ratio: 0.5}         # a pass with options
 //! ```
+//!
+//! A recipe can start from another: `base: detect-lossless` runs that recipe's passes first
+//! (less those named in `without: [..]`), then its own. The base is a sibling file of that
+//! name, else the shipped recipe; a loaded recipe holds the expanded list, which is what the
+//! manifest records and a rebuild runs.
 
 use anyhow::{anyhow, bail, Context, Result};
 use serde::{Deserialize, Serialize};
@@ -19,32 +24,101 @@ pub struct PassSpec {
     /// The recipe file's line that names the pass (1-based; 0 when not from a file).
     #[serde(skip, default)]
     pub line: usize,
+    /// The base recipe that wrote the pass; empty for the recipe's own passes.
+    #[serde(skip, default)]
+    pub base: String,
 }
+
+impl PassSpec {
+    pub fn new(name: &str, options: yaml_serde::Value) -> PassSpec {
+        PassSpec { name: name.to_string(), options, line: 0, base: String::new() }
+    }
+
+    /// Where the recipe names it, for errors: "line 12: recover" or "line 9 of base detect-lossless: dce".
+    pub fn at(&self) -> String {
+        match (self.line, self.base.is_empty()) {
+            (0, _) => format!("pass {}", self.name),
+            (l, true) => format!("line {l}: {}", self.name),
+            (l, false) => format!("line {l} of base {}: {}", self.base, self.name),
+        }
+    }
+}
+
+/// The recipes under `passes/`, built in: a recipe's `base:` names one of them when no file of
+/// that name lies beside it, and `bench` and `ship` run them.
+pub const SHIPPED: &[(&str, &str)] = &[
+    ("identity", include_str!("../../passes/identity.yaml")),
+    ("detect-cut", include_str!("../../passes/detect-cut.yaml")),
+    ("detect-lossless", include_str!("../../passes/detect-lossless.yaml")),
+    ("detect-f32", include_str!("../../passes/detect-f32.yaml")),
+    ("detect-fp16", include_str!("../../passes/detect-fp16.yaml")),
+    ("detect-int8", include_str!("../../passes/detect-int8.yaml")),
+    ("detect-int8-learned", include_str!("../../passes/detect-int8-learned.yaml")),
+    ("detect-int8-qat", include_str!("../../passes/detect-int8-qat.yaml")),
+    ("detect-int8-robust", include_str!("../../passes/detect-int8-robust.yaml")),
+    ("detect-pruned-f32", include_str!("../../passes/detect-pruned-f32.yaml")),
+    ("detect-pruned-fp16", include_str!("../../passes/detect-pruned-fp16.yaml")),
+    ("detect-pruned-int8", include_str!("../../passes/detect-pruned-int8.yaml")),
+    ("detect-pruned-int8-qat", include_str!("../../passes/detect-pruned-int8-qat.yaml")),
+    ("detect-pruned-f32-norecover", include_str!("../../passes/detect-pruned-f32-norecover.yaml")),
+    ("detect-pruned-fp16-norecover", include_str!("../../passes/detect-pruned-fp16-norecover.yaml")),
+    ("detect-pruned-int8-norecover", include_str!("../../passes/detect-pruned-int8-norecover.yaml")),
+    ("detect-rknn", include_str!("../../passes/detect-rknn.yaml")),
+    ("detect-rknn-qat", include_str!("../../passes/detect-rknn-qat.yaml")),
+    ("detect-pruned-rknn", include_str!("../../passes/detect-pruned-rknn.yaml")),
+    ("detect-pruned-rknn-norecover", include_str!("../../passes/detect-pruned-rknn-norecover.yaml")),
+];
+
+/// The text of a shipped recipe.
+pub fn shipped(name: &str) -> Option<&'static str> {
+    SHIPPED.iter().find(|(n, _)| *n == name).map(|(_, t)| *t)
+}
+
+/// How deep bases may nest: deeper is a cycle or a mistake.
+const MAX_BASE_DEPTH: usize = 8;
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Recipe {
     pub name: String,
     pub description: String,
+    /// The recipes it was expanded from, nearest first (the record; `passes` holds them all).
+    #[serde(skip, default)]
+    pub bases: Vec<String>,
     pub passes: Vec<PassSpec>,
 }
 
 impl Recipe {
+    /// A recipe file; `base:` names a sibling file, else a shipped recipe.
     pub fn load(path: &Path) -> Result<Recipe> {
         let text = std::fs::read_to_string(path).with_context(|| format!("cannot read pipeline {}", path.display()))?;
-        Recipe::parse(&text).with_context(|| format!("pipeline {}", path.display()))
+        let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        let find = |name: &str| -> Result<String> {
+            let file = dir.join(format!("{name}.yaml"));
+            if file.is_file() {
+                return std::fs::read_to_string(&file).with_context(|| format!("cannot read base {}", file.display()));
+            }
+            shipped(name).map(str::to_string).ok_or_else(|| anyhow!("base '{name}': no {} and no shipped recipe of that name", file.display()))
+        };
+        Recipe::parse_with(&text, &find, 0).with_context(|| format!("pipeline {}", path.display()))
     }
 
+    /// A recipe's text; `base:` names a shipped recipe.
     pub fn parse(text: &str) -> Result<Recipe> {
+        let find = |name: &str| shipped(name).map(str::to_string).ok_or_else(|| anyhow!("base '{name}': no shipped recipe of that name (shipped: {})", SHIPPED.iter().map(|r| r.0).collect::<Vec<_>>().join(", ")));
+        Recipe::parse_with(text, &find, 0)
+    }
+
+    fn parse_with(text: &str, find: &dyn Fn(&str) -> Result<String>, depth: usize) -> Result<Recipe> {
         let doc: yaml_serde::Value = yaml_serde::from_str(text).map_err(|e| anyhow!("not valid YAML: {e}"))?;
         let map = doc.as_mapping().ok_or_else(|| anyhow!("expected a mapping with `name` and `passes`"))?;
         let text_field = |k: &str| map.get(k).and_then(|v| v.as_str()).unwrap_or_default().to_string();
         for key in map.keys() {
             let k = key.as_str().unwrap_or_default();
-            if !["name", "description", "passes"].contains(&k) {
-                bail!("unknown key '{k}' (expected name, description, passes)");
+            if !["name", "description", "base", "without", "passes"].contains(&k) {
+                bail!("unknown key '{k}' (expected name, description, base, without, passes)");
             }
         }
-        let passes = match map.get("passes") {
+        let own = match map.get("passes") {
             None | Some(yaml_serde::Value::Null) => Vec::new(),
             Some(yaml_serde::Value::Sequence(items)) => {
                 let lines = pass_lines(text, items.len());
@@ -52,7 +126,35 @@ impl Recipe {
             }
             Some(_) => bail!("`passes` must be a list"),
         };
-        Ok(Recipe { name: text_field("name"), description: text_field("description"), passes })
+        let without: Vec<String> = match map.get("without") {
+            None => Vec::new(),
+            Some(v) => yaml_serde::from_value(v.clone()).map_err(|_| anyhow!("`without` must be a list of pass names"))?,
+        };
+        let (mut passes, mut bases) = (Vec::new(), Vec::new());
+        match map.get("base") {
+            None => {
+                if !without.is_empty() {
+                    bail!("`without` removes passes of a base: add `base:`");
+                }
+            }
+            Some(b) => {
+                let base = b.as_str().ok_or_else(|| anyhow!("`base` must be a recipe name"))?;
+                if depth >= MAX_BASE_DEPTH {
+                    bail!("base '{base}': bases nest deeper than {MAX_BASE_DEPTH} (a cycle?)");
+                }
+                let parent = Recipe::parse_with(&find(base)?, find, depth + 1).with_context(|| format!("base {base}"))?;
+                for w in &without {
+                    if !parent.passes.iter().any(|p| &p.name == w) {
+                        bail!("`without: [{w}]`: base {base} has no pass {w}");
+                    }
+                }
+                bases.push(base.to_string());
+                bases.extend(parent.bases);
+                passes.extend(parent.passes.into_iter().filter(|p| !without.contains(&p.name)).map(|p| PassSpec { base: if p.base.is_empty() { base.to_string() } else { p.base }, ..p }));
+            }
+        }
+        passes.extend(own);
+        Ok(Recipe { name: text_field("name"), description: text_field("description"), bases, passes })
     }
 
     /// The recipe file form, which [`Recipe::parse`] reads back.
@@ -106,7 +208,7 @@ impl Recipe {
         // distills the crop from the full model anyway.
         let prunes = self.passes.iter().any(|p| p.name == "prune");
         let options = |n: &str| if n == "crop-roi" && prunes { yaml_serde::from_str("{halo: zero}") } else { Ok(yaml_serde::Value::Null) };
-        let inserted = wanted.iter().map(|n| Ok(PassSpec { name: n.to_string(), options: options(n)?, line: 0 })).collect::<Result<Vec<_>>>()?;
+        let inserted = wanted.iter().map(|n| Ok(PassSpec::new(n, options(n)?))).collect::<Result<Vec<_>>>()?;
         let mut out = self.clone();
         out.passes.splice(at..at, inserted);
         Ok(out)
@@ -124,11 +226,11 @@ fn pass_lines(text: &str, n: usize) -> Vec<usize> {
 
 fn pass_spec(item: &yaml_serde::Value) -> Result<PassSpec> {
     match item {
-        yaml_serde::Value::String(s) => Ok(PassSpec { name: s.clone(), options: yaml_serde::Value::Null, line: 0 }),
+        yaml_serde::Value::String(s) => Ok(PassSpec::new(s, yaml_serde::Value::Null)),
         yaml_serde::Value::Mapping(m) if m.len() == 1 => {
             let (k, v) = m.iter().next().expect("one entry");
             let name = k.as_str().ok_or_else(|| anyhow!("a pass name must be a string"))?;
-            Ok(PassSpec { name: name.to_string(), options: v.clone(), line: 0 })
+            Ok(PassSpec::new(name, v.clone()))
         }
         _ => bail!("each pass must be a name or `name: {{options}}`"),
     }

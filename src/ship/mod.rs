@@ -14,6 +14,7 @@
 //! Pruning runs once: INT8 and the NPU build start from the same recovered pruned model, so
 //! what the CPU runs and what the NPU runs differ only by their last pass.
 
+pub mod recommend;
 pub mod render;
 
 use crate::bench::{last_pass_of, time_together, with_recover_steps, Failed, Timing, DETECT_F32, DETECT_INT8};
@@ -41,6 +42,8 @@ pub struct ShipRequest {
     pub frames: usize,
     pub recover_steps: Option<usize>,
     pub runs: usize,
+    /// The share of the original's mAP an artifact must keep to be recommended for a CPU.
+    pub min_kept: f64,
     pub threads: usize,
 }
 
@@ -78,6 +81,8 @@ pub struct ShipReport {
     /// Variants whose compile ended past a lossy pass's hard limit (no artifact), and why.
     pub failed: Vec<String>,
     pub warnings: Vec<String>,
+    /// The artifact to deploy on each target, and the measurement that chose it.
+    pub recommended: Vec<recommend::Recommendation>,
     pub seconds: f64,
 }
 
@@ -181,6 +186,7 @@ pub fn ship(req: &ShipRequest) -> Result<ShipReport> {
         }
     }
     let rknn = req.out.join("rknn");
+    let recommended = recommend::recommend(&variants, req.min_kept, &rknn, failed.contains("rknn"));
     let report = ShipReport {
         model: req.model.display().to_string(),
         out: req.out.display().to_string(),
@@ -191,6 +197,7 @@ pub fn ship(req: &ShipRequest) -> Result<ShipReport> {
         rknn: rknn.display().to_string(),
         failed: failed.lines(),
         warnings: warnings.into_iter().chain(crate::warn::take()).collect(),
+        recommended,
         seconds: started.elapsed().as_secs_f64(),
     };
     write_atomic(&root.join("ship.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;

@@ -45,6 +45,10 @@ impl ShipReport {
             }
         }
         let _ = writeln!(s, "\nmAP is mAP@0.5:0.95; agreement scores each variant's detections against the original's.");
+        let _ = writeln!(s, "\ndeploy");
+        for r in &self.recommended {
+            let _ = writeln!(s, "  {:<12} {:<12} {}", r.target, r.variant.as_deref().unwrap_or("-"), r.why);
+        }
         let _ = writeln!(s, "\nartifacts");
         for v in self.variants.iter().skip(1) {
             let _ = writeln!(s, "  {:<12} {}/  {}", v.name, v.folder, v.file);

@@ -288,7 +288,7 @@ fn bad_qat_settings_are_refused_before_calibration() {
 fn bad_rknn_qat_settings_and_placement_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let qat = std::fs::read_to_string(repo().join("passes/detect-rknn-qat.yaml")).unwrap();
-    let misplaced = qat.replace("  - rknn-legalize\n", "");
+    let misplaced = qat.replace("base: detect-rknn\n", "base: detect-f32\n");
     assert!(qat.contains("rknn-qat: {steps: 800}") && misplaced != qat, "the recipe's lines moved; update this test");
     for (recipe_text, needle) in [
         (qat.replace("rknn-qat: {steps: 800}", "rknn-qat: {steps: 0}"), "steps and batch must be at least 1"),

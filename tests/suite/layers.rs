@@ -19,7 +19,7 @@ const LAYERS: &[&[&str]] = &[
     // libraries the commands share: running an artifact, comparing two models, the manifest
     &["deploy", "verify", "manifest"],
     // commands
-    &["compile", "rebuild", "run", "ship", "bench", "stress", "cli", "fuzz_targets"],
+    &["compile", "rebuild", "run", "ship", "bench", "stress", "cli", "fuzz_targets", "reference"],
 ];
 
 /// Imports that point up today, (from, to).

@@ -72,7 +72,7 @@ fn recovery_improves_agreement_and_keeps_the_nodes() {
     let prune = "{prune: {ratio: 0.5, compensate: none}}";
     let (plain, recovered) = (dir.path().join("plain.yaml"), dir.path().join("recovered.yaml"));
     std::fs::write(&plain, format!("name: p\npasses: [{LOSSLESS}, {prune}, cleanup]\n")).unwrap();
-    std::fs::write(&recovered, format!("name: r\npasses: [{LOSSLESS}, {prune}, {{recover: {{steps: 72, minutes: 1.5, frames: 96, batch: 8}}}}, cleanup]\n")).unwrap();
+    std::fs::write(&recovered, format!("name: r\npasses: [{LOSSLESS}, {prune}, {{recover: {{steps: 72, frames: 96, batch: 8}}}}, cleanup]\n")).unwrap();
     let model = "models/trained/pdinet_v5_tiny_trained.onnx";
     compile(model, plain.to_str().unwrap(), &dir.path().join("plain"));
     let report = compile(model, recovered.to_str().unwrap(), &dir.path().join("recovered"));
@@ -124,12 +124,17 @@ fn impossible_recover_settings_are_refused() {
 #[test]
 fn a_pruned_compile_is_byte_identical_when_repeated_under_load() {
     let dir = tempfile::tempdir().unwrap();
+    // detect-pruned-int8 is `base: detect-pruned-f32` plus INT8: the edited copy beside it is
+    // the base it reads.
+    let text = std::fs::read_to_string(repo().join("passes/detect-pruned-f32.yaml")).unwrap();
+    let shipped = "recover: {steps: 8000, lr: 2.0e-3, batch: 8, frames: 2048}";
+    assert!(text.contains(shipped), "detect-pruned-f32's recover line moved; update this test");
+    std::fs::write(dir.path().join("detect-pruned-f32.yaml"), text.replace(shipped, "recover: {steps: 30, lr: 2.0e-3, batch: 8, frames: 64}")).unwrap();
+    let int8 = std::fs::read_to_string(repo().join("passes/detect-pruned-int8.yaml")).unwrap();
+    assert!(int8.contains("base: detect-pruned-f32\n"), "detect-pruned-int8 no longer starts from detect-pruned-f32; update this test");
+    std::fs::write(dir.path().join("detect-pruned-int8.yaml"), int8).unwrap();
     for name in ["detect-pruned-f32", "detect-pruned-int8"] {
-        let text = std::fs::read_to_string(repo().join(format!("passes/{name}.yaml"))).unwrap();
-        let shipped = "recover: {steps: 8000, lr: 2.0e-3, batch: 8, frames: 2048}";
-        assert!(text.contains(shipped), "{name}'s recover line moved; update this test");
         let recipe = dir.path().join(format!("{name}.yaml"));
-        std::fs::write(&recipe, text.replace(shipped, "recover: {steps: 30, lr: 2.0e-3, batch: 8, frames: 64}")).unwrap();
         let (a, b) = (dir.path().join(format!("{name}-a")), dir.path().join(format!("{name}-b")));
         let first = compile("models/trained/pdinet_v5_tiny_trained.onnx", recipe.to_str().unwrap(), &a);
         assert!(first["not_reproducible"].as_array().unwrap().is_empty(), "{}", first["not_reproducible"]);

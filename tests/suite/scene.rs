@@ -198,7 +198,7 @@ fn halos_bring_the_crop_closer_to_the_full_model() {
 
 /// `recover: {train: estimates}` trains the crop's halos and pool corrections alone, end to
 /// end against the full model: every other initializer stays bit for bit, and the crop gets
-/// closer to the full model on held-out frames.
+/// closer to the full model on held-out frames. Steps only, no time cap: the same model on any load.
 #[test]
 fn training_the_estimates_alone_brings_the_crop_closer() {
     let dir = tempfile::tempdir().unwrap();
@@ -207,7 +207,7 @@ fn training_the_estimates_alone_brings_the_crop_closer() {
     // Fitted closed loop (each estimate on the crop's own values), the start training wants.
     let crop = "{crop-roi: {closed_loop: true}}";
     let fitted = write(dir.path(), "fitted.yaml", &format!("name: fitted\npasses: [{LOSSLESS}, {crop}, cleanup]\n"));
-    let trained = write(dir.path(), "trained.yaml", &format!("name: trained\npasses: [{LOSSLESS}, {crop}, {{recover: {{train: estimates, steps: 240, minutes: 1.0, frames: 96, batch: 8, lr: 0.003}}}}, cleanup]\n"));
+    let trained = write(dir.path(), "trained.yaml", &format!("name: trained\npasses: [{LOSSLESS}, {crop}, {{recover: {{train: estimates, steps: 240, frames: 96, batch: 8, lr: 0.003}}}}, cleanup]\n"));
     let model = repo().join("models/trained").join(MODELS[0]);
     let (full, a, b) = (dir.path().join("full"), dir.path().join("fitted"), dir.path().join("trained"));
     compile(&model, "passes/detect-f32.yaml", None, &full);
@@ -224,10 +224,14 @@ fn training_the_estimates_alone_brings_the_crop_closer() {
     let changed: Vec<&str> = ga.initializer.iter().zip(&gb.initializer).filter(|(x, y)| x != y).map(|(x, _)| x.name.as_str()).collect();
     assert_eq!(ga.node, gb.node);
     assert!(!changed.is_empty() && changed.iter().all(|n| n.contains("_halo_") || n.contains("_frame_")), "trained initializers: {changed:?}");
+    // The distillation minimises the error over the whole output, so that is what must drop on
+    // held-out frames; no scale group may get more than slightly worse on the way.
+    let whole = |j: &Value| j["outputs"][0]["ort"]["rel_l2"].as_f64().unwrap();
     let worst = |j: &Value| j["outputs"][0]["groups"].as_array().unwrap().iter().map(|g| g["ort"]["rel_l2"].as_f64().unwrap()).fold(0.0, f64::max);
     let (ja, jb) = (verify(&full.join("model.onnx"), &a.join("model.onnx"), &data), verify(&full.join("model.onnx"), &b.join("model.onnx"), &data));
-    println!("fitted: worst rel L2 {:.4}; trained: {:.4}", worst(&ja), worst(&jb));
-    assert!(worst(&jb) < worst(&ja), "trained estimates {:.4} against fitted {:.4}", worst(&jb), worst(&ja));
+    println!("rel L2 fitted {:.4} (worst group {:.4}); trained {:.4} (worst group {:.4})", whole(&ja), worst(&ja), whole(&jb), worst(&jb));
+    assert!(whole(&jb) < whole(&ja), "trained estimates: rel L2 {:.4} against fitted {:.4}", whole(&jb), whole(&ja));
+    assert!(worst(&jb) < 1.05 * worst(&ja), "trained estimates: worst group {:.4} against fitted {:.4}", worst(&jb), worst(&ja));
     // Without a crop before it there is nothing to train.
     let r = cli(&["compile", model.to_str().unwrap(), "--pipeline", trained.to_str().unwrap(), "--psf", PSF, "-o", dir.path().join("none").to_str().unwrap()]);
     assert_eq!(r.code, 2, "{}", r.stderr);

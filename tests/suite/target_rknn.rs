@@ -133,11 +133,10 @@ fn rknn_convert_builds_and_its_simulator_agrees_with_ort() {
     assert!(r.stdout.contains("FAIL") && r.stdout.contains("cosine"), "{}", r.stdout);
 }
 
-/// `passes/detect-rknn.yaml` with `pass` appended, written into `dir`.
+/// `detect-rknn` with `pass` after it, written into `dir`.
 fn detect_rknn_then(dir: &std::path::Path, pass: &str) -> std::path::PathBuf {
     let recipe = dir.join("detect-rknn-then.yaml");
-    let base = std::fs::read_to_string(repo().join("passes/detect-rknn.yaml")).unwrap();
-    std::fs::write(&recipe, format!("{base}  - {pass}\n")).unwrap();
+    std::fs::write(&recipe, format!("name: detect-rknn-then\nbase: detect-rknn\npasses:\n  - {pass}\n")).unwrap();
     recipe
 }
 
@@ -187,7 +186,7 @@ fn rknn_qat_trains_on_the_toolkits_plan_and_reaches_the_npu() {
     let plain = dir.path().join("plain");
     let r = compile("models/trained/pdinet_v5_tiny_trained.onnx", "passes/detect-rknn.yaml", &plain, &["--target", "rknn"]);
     assert_eq!(r.code, 0, "{}", r.stderr);
-    let recipe = detect_rknn_then(dir.path(), "rknn-qat: {steps: 16, minutes: 2, lr: 0.0005, frames: 32}");
+    let recipe = detect_rknn_then(dir.path(), "rknn-qat: {steps: 16, lr: 0.0005, frames: 32}");
     let out = dir.path().join("qat");
     let r = compile("models/trained/pdinet_v5_tiny_trained.onnx", recipe.to_str().unwrap(), &out, &["--target", "rknn"]);
     assert_eq!(r.code, 0, "{}", r.stderr);
