@@ -249,7 +249,12 @@ fn allocate(original: &ModelProto, analysis: &crate::analysis::channels::Channel
     };
     let base = counts(original)?.macs;
     let mut groups = Vec::new();
+    let prunable = analysis.groups.iter().filter(|g| g.frozen.is_none()).count();
+    // Minutes on a larger model: say how far it is (hidden when stderr is not a terminal).
+    let pb = indicatif::ProgressBar::new(prunable as u64);
+    pb.set_style(indicatif::ProgressStyle::with_template("prune: sensitivity of each group [{bar:30}] {pos}/{len} ({elapsed})").expect("valid template").progress_chars("=> "));
     for (gi, g) in analysis.groups.iter().enumerate().filter(|(_, g)| g.frozen.is_none()) {
+        pb.inc(1);
         let mut levels: Vec<Level> = Vec::new();
         for &ratio in LEVELS {
             let (m, plan) = pruned(&HashMap::from([(g.anchor.clone(), ratio)]))?;
@@ -264,6 +269,7 @@ fn allocate(original: &ModelProto, analysis: &crate::analysis::channels::Channel
             groups.push(GroupSensitivity { anchor: g.anchor.clone(), channels: g.classes.len(), levels, chosen: 0.0 });
         }
     }
+    pb.finish_and_clear();
     let mut macs_of = |r: &HashMap<String, f64>| -> Result<u64> { Ok(counts(&pruned(r)?.0)?.macs) };
     let (ratios, met) = match (target.macs, target.latency) {
         (Some(f), None) => allocate_ratios(&mut groups, Budget::Macs((f * base as f64) as u64), &mut macs_of)?,

@@ -175,10 +175,17 @@ fn zero_ratio_is_the_identity_and_bad_ratios_are_refused() {
     assert!(format!("{err:#}").contains("ratio"), "{err:#}");
 }
 
+/// Four of the 16 fixtures: each head with each blur-map form, each opset and each folding,
+/// and each blur-map form with each opset and folding (the export choices that change the
+/// graph pruning analyses); all 16 took 217 s of the suite on 2 cores.
+const PAIRWISE: &[&str] = &["pdinet_v5_input_op17_nofold", "pdinet_v5_const_op13_fold", "pdinet_v8_input_op13_fold", "pdinet_v8_const_op17_nofold"];
+
 #[test]
-fn every_fixture_meets_the_size_targets_and_runs_alike_on_ort_and_tract() {
+fn pairwise_fixtures_meet_the_size_targets_and_run_alike_on_ort_and_tract() {
     let dir = tempfile::tempdir().unwrap();
-    for f in fixtures() {
+    let chosen: Vec<_> = fixtures().into_iter().filter(|f| PAIRWISE.iter().any(|n| f.file_stem().is_some_and(|s| s == *n))).collect();
+    assert_eq!(chosen.len(), PAIRWISE.len(), "the pairwise fixtures exist");
+    for f in chosen {
         let stem = f.file_stem().unwrap().to_str().unwrap();
         let compile = |pipeline: &str, out: &str| {
             let out = dir.path().join(format!("{stem}_{out}"));

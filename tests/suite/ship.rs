@@ -12,7 +12,7 @@ fn ship_writes_every_artifact_and_one_screen() {
     for f in ["f32/model.onnx", "f32/tract.yaml", "pruned-f32/model.onnx", "pruned-f32/tract.yaml", "pruned-int8/model.onnx", "rknn/model.onnx", "rknn/rknn.yaml", "rknn/dataset.txt", "ship.json"] {
         assert!(out.join(f).is_file(), "{f} written");
     }
-    assert!(r.stdout.lines().count() <= 30, "one screen:\n{}", r.stdout);
+    assert!(r.stdout.lines().count() <= 34, "one screen:\n{}", r.stdout);
     assert!(r.stdout.contains("pruned-int8") && r.stdout.contains("rknn-convert"), "{}", r.stdout);
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("ship.json")).unwrap()).unwrap();
     let v = report["variants"].as_array().unwrap();
@@ -33,4 +33,18 @@ fn ship_writes_every_artifact_and_one_screen() {
         let a = x["agreement"].as_f64().unwrap_or_else(|| panic!("{} has no agreement measured: {x}", x["name"]));
         assert!(a > 0.0 && a <= 1.0, "{x}");
     }
+    // The artifact to deploy per target, chosen by the measurements above: on a CPU engine the
+    // fastest variant keeping 0.9 of the original's accuracy (these frames have no labels, so
+    // the agreement), on the RK3588 the RKNN folder.
+    let rec = report["recommended"].as_array().unwrap();
+    let targets: Vec<&str> = rec.iter().map(|r| r["target"].as_str().unwrap()).collect();
+    assert_eq!(targets, ["onnxruntime", "tract", "rk3588"]);
+    for (r, key) in rec.iter().zip(["ort_ms", "tract_ms"]) {
+        let keeping: Vec<&serde_json::Value> = v[1..].iter().filter(|x| x["agreement"].as_f64().unwrap() >= 0.9).collect();
+        let fastest = keeping.iter().min_by(|a, b| a[key].as_f64().unwrap().total_cmp(&b[key].as_f64().unwrap())).unwrap();
+        assert_eq!(r["variant"], fastest["name"], "{r}");
+        assert!(r["why"].as_str().unwrap().contains(" ms on "), "{r}");
+    }
+    assert_eq!(rec[2]["variant"], "rknn");
+    assert!(r.stdout.contains("deploy\n  onnxruntime  "), "{}", r.stdout);
 }
