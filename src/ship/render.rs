@@ -7,7 +7,8 @@ impl ShipReport {
     pub fn render(&self) -> String {
         let mut s = String::new();
         let _ = writeln!(s, "pdi-compile ship  {}  ->  {}", self.model, self.out);
-        let _ = writeln!(s, "checked on {}; timed on {} threads (ORT and tract alike), median of {} runs, one interleaved loop\n", self.frames, self.threads, self.runs);
+        let _ = writeln!(s, "checked on {}; timed on {} threads (ORT and tract alike), median of {} runs, one interleaved loop", self.frames, self.threads, self.runs);
+        let _ = writeln!(s, "mAP is mAP@0.5:0.95; agreement scores each variant's detections against the original's\n");
         let labels = self.variants.iter().any(|v| v.map_labels.is_some());
         let _ = writeln!(
             s,
@@ -44,7 +45,6 @@ impl ShipReport {
                 let _ = writeln!(s, "note: {}: {n}", v.name);
             }
         }
-        let _ = writeln!(s, "\nmAP is mAP@0.5:0.95; agreement scores each variant's detections against the original's.");
         let _ = writeln!(s, "\ndeploy");
         for r in &self.recommended {
             let _ = writeln!(s, "  {:<12} {:<12} {}", r.target, r.variant.as_deref().unwrap_or("-"), r.why);
@@ -53,12 +53,13 @@ impl ShipReport {
         for v in self.variants.iter().skip(1) {
             let _ = writeln!(s, "  {:<12} {}/  {}", v.name, v.folder, v.file);
         }
-        let _ = writeln!(s, "  {:<12} {}/  model.onnx, rknn.yaml, dataset.txt, calib/ (build model.rknn with the toolkit's simulator check:", "rknn", self.rknn);
-        let _ = writeln!(s, "  {:<12} pdi-compile rknn-convert {})", "", self.rknn);
-        if !self.warnings.is_empty() {
-            let _ = writeln!(s, "\n{} warning(s), listed in ship.json; the first: {}", self.warnings.len(), self.warnings[0]);
+        let _ = writeln!(s, "  {:<12} {}/  model.onnx, rknn.yaml, dataset.txt, calib/ (the toolkit's input)", "rknn", self.rknn);
+        // The notes above already said the warnings that are variants' notes.
+        let unsaid: Vec<&String> = self.warnings.iter().filter(|w| !self.variants.iter().any(|v| v.note.as_ref().is_some_and(|n| w.ends_with(n.as_str())))).collect();
+        if let Some(first) = unsaid.first() {
+            let _ = writeln!(s, "{} more warning(s), listed in ship.json; the first: {first}", unsaid.len());
         }
-        let _ = writeln!(s, "\nfull report: {}/ship.json (and report.json in each folder); {:.0} s in all", self.out, self.seconds);
+        let _ = writeln!(s, "full report: {}/ship.json (and report.json in each folder); {:.0} s in all", self.out, self.seconds);
         s
     }
 }
