@@ -139,6 +139,10 @@ impl Recipe {
             }
             Some(b) => {
                 let base = b.as_str().ok_or_else(|| anyhow!("`base` must be a recipe name"))?;
+                // A name, never a path: a recipe cannot reach files outside its own folder.
+                if base.is_empty() || base.starts_with('.') || base.contains(['/', '\\']) {
+                    bail!("base '{base}': give a recipe's name (like detect-f32), not a path");
+                }
                 if depth >= MAX_BASE_DEPTH {
                     bail!("base '{base}': bases nest deeper than {MAX_BASE_DEPTH} (a cycle?)");
                 }

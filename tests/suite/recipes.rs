@@ -284,6 +284,7 @@ fn bases_resolve_beside_the_file_then_among_the_shipped_and_refuse_mistakes() {
         ("name: x\nbase: detect-lossless\nwithout: [quantize]\npasses: []\n", "has no pass quantize"),
         ("name: x\nwithout: [dce]\npasses: []\n", "add `base:`"),
         ("name: x\nbase: x\npasses: []\n", "deeper than"),
+        ("name: x\nbase: ../passes/detect-f32\npasses: []\n", "not a path"),
     ] {
         std::fs::write(d.join("x.yaml"), text).unwrap();
         let e = format!("{:#}", Recipe::load(&d.join("x.yaml")).unwrap_err());
