@@ -107,11 +107,6 @@ fn every_guide_page_is_run() {
 }
 
 #[test]
-fn guide_compile() {
-    run_pages(&["README.md", "compile.md"]);
-}
-
-#[test]
 fn guide_quantize() {
     run_pages(&["README.md", "quantize.md"]);
 }
@@ -131,8 +126,8 @@ fn guide_gate() {
     run_pages(&["README.md", "gate.md"]);
 }
 
-/// prune, run (which draws the pruned model against the lossless one) and stress (which takes
-/// the lossless compile as a candidate) share their predecessors' folders.
+/// compile, then prune, run (which draws the pruned model against the lossless one) and stress
+/// (which takes the lossless compile as a candidate): each reads its predecessors' folders.
 #[test]
 fn guide_prune_run_stress() {
     run_pages(&["README.md", "compile.md", "prune.md", "run.md", "stress.md"]);
