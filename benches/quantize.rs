@@ -24,7 +24,7 @@ fn compiled(original: &ModelProto, last: &str) -> ModelProto {
     let text = format!("name: bench\npasses: [strip-recon, {{bind-psf: {{psf: calib/single_lwir_blur.npy}}}}, fold-constants, fold-psf-gates, fold-bn, resize-to-deconv, dce, cleanup{last}]");
     let mut m = original.clone();
     std::env::set_current_dir(env!("CARGO_MANIFEST_DIR")).unwrap();
-    run(&Recipe::parse(&text).unwrap(), &mut m, &PassContext::default()).unwrap();
+    run(&Recipe::parse(&text).unwrap(), &mut m, &mut PassContext::default()).unwrap();
     m
 }
 

@@ -3,7 +3,7 @@
 //!   cargo run --release --example tract_forms -- MODEL.onnx TRACT_FORM.onnx RUNS
 //! e.g. a compile against the same compile with `--target tract` (its column tiles).
 use pdi_compile::runtime::{ort_runtime::OrtRuntime, tract_runtime::TractRuntime, Runtime};
-use pdi_compile::verify::latency::interleaved;
+use pdi_compile::runtime::latency::interleaved;
 fn main() -> anyhow::Result<()> {
     let a: Vec<String> = std::env::args().collect();
     let load = |p: &str| pdi_compile::onnx::io::load(std::path::Path::new(p)).map(|l| l.model);

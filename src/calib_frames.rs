@@ -89,7 +89,7 @@ pub fn calibration_frames_from(folder: Option<&Path>, first: usize, n: usize, he
             let s = crate::optics::synth::scene(sw, sh, seed.wrapping_mul(7919).wrapping_add(i as u64));
             let mut img = blur.apply(&s.pixels);
             add_noise(&mut img, &NOISE, &mut Rng::new(seed.wrapping_add(1_000 + i as u64)));
-            let img = if (sw, sh) == (width, height) { img } else { crate::dataset::resize_area(&img, sw, sh, width, height) };
+            let img = if (sw, sh) == (width, height) { img } else { crate::frames::resize_area(&img, sw, sh, width, height) };
             pb.inc(1);
             Frame { name: format!("physics_{i:04}"), image: Tensor::f32(vec![1, 1, height, width], img), labels: None }
         })

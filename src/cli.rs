@@ -423,7 +423,7 @@ pub fn run(cli: Cli) -> Result<u8> {
     match cli.command {
         Command::Inspect { model, json, scene: Some(scene), psf, calib } => {
             let loaded = crate::onnx::load(&model)?;
-            let p = crate::scene::preview::preview(&loaded.model, &crate::scene::Scene::load(&scene)?, psf, calib)?;
+            let p = crate::pipeline::preview::preview(&loaded.model, &crate::scene::Scene::load(&scene)?, psf, calib)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&p)?);
             } else {

@@ -42,8 +42,8 @@ pub struct CompileReport {
     pub input_sha256: String,
     pub pipeline: Recipe,
     pub pipeline_file: String,
-    pub before: pipeline::Counts,
-    pub after: pipeline::Counts,
+    pub before: crate::inspect::Counts,
+    pub after: crate::inspect::Counts,
     pub passes: Vec<PassReport>,
     /// Every warning of the compile (also printed on stderr as it happened).
     pub warnings: Vec<String>,
@@ -87,22 +87,17 @@ pub fn compile_recipe(req: &CompileRequest, recipe: Recipe) -> Result<CompileRep
         _ => recipe.passes.len(),
     };
     let (head, tail) = recipe.passes.split_at(split);
-    let mut passes = pipeline::run(&Recipe { passes: head.to_vec(), ..recipe.clone() }, &mut model, &req.context)?;
+    let mut cx = req.context.clone();
+    let mut passes = pipeline::run(&Recipe { passes: head.to_vec(), ..recipe.clone() }, &mut model, &mut cx)?;
     let float = (!tail.is_empty()).then(|| model.clone());
-    passes.extend(pipeline::run(&Recipe { passes: tail.to_vec(), ..recipe.clone() }, &mut model, &req.context)?);
-    // Passes list their warnings in their details; they join the top-level list (and stderr).
-    for p in &passes {
-        for w in p.details["warnings"].as_array().into_iter().flatten().filter_map(|w| w.as_str()) {
-            crate::warn::warn(format!("{}: {w}", p.pass));
-        }
-    }
+    passes.extend(pipeline::run(&Recipe { passes: tail.to_vec(), ..recipe.clone() }, &mut model, &mut cx)?);
     if let Some(scene) = &req.context.scene {
         crate::scene::record_post_processing(&mut model, scene)?;
     }
     // The runner already counted before the first pass and after each one.
     let before = match passes.first() {
         Some(p) => p.before,
-        None => pipeline::counts(&model)?,
+        None => crate::inspect::counts(&model)?,
     };
     let after = passes.last().map_or(before, |p| p.after);
 
@@ -134,7 +129,7 @@ pub fn compile_recipe(req: &CompileRequest, recipe: Recipe) -> Result<CompileRep
         before,
         after,
         passes,
-        warnings: crate::warn::take(),
+        warnings: crate::warn::take().into_iter().chain(cx.warnings).collect(),
         not_reproducible: unrepeatable,
         millis: t.elapsed().as_secs_f64() * 1e3,
         output: out_model.display().to_string(),

@@ -1,14 +1,14 @@
 //! Image sets on disk: synthetic scenes, degraded copies, calibration sets; real folders
 //! with YOLO or COCO labels, rescaled with their boxes.
 
-use crate::frames::{read_gray, read_yolo_labels, write_gray16};
+use crate::frames::{image_files, read_gray, read_yolo_labels, resize_area, write_gray16};
 use crate::fsutil::{ensure_dir, write_atomic};
 use crate::metrics::coco_map::Truth;
 use crate::optics::degrade::{add_noise, psnr, NoiseModel, SpatialBlur};
 use crate::optics::psf_set::PsfSet;
 use crate::optics::rng::Rng;
 use crate::optics::synth::{self, yolo_text, CLASSES};
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -100,18 +100,6 @@ pub fn degrade_path(input: &Path, output: &Path, psf: &PsfSet, noise: NoiseModel
     })
 }
 
-pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
-    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
-        .with_context(|| format!("cannot read {}", dir.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| matches!(p.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref(), Some("png" | "tif" | "tiff" | "npy")))
-        .collect();
-    v.sort();
-    if v.is_empty() {
-        bail!("{} holds no .png, .tif or .npy images", dir.display());
-    }
-    Ok(v)
-}
 
 /// M3FD class index of a dataset's category name (FLIR ADAS and COCO spellings included).
 pub fn m3fd_class(name: &str) -> Option<usize> {
@@ -147,35 +135,6 @@ pub fn read_coco(path: &Path) -> Result<HashMap<String, Vec<Truth>>> {
     Ok(out)
 }
 
-/// Area-average resampling (exact box integration), row-major.
-pub fn resize_area(src: &[f32], sw: usize, sh: usize, dw: usize, dh: usize) -> Vec<f32> {
-    let weights = |s: usize, d: usize| -> Vec<Vec<(usize, f32)>> {
-        let scale = s as f64 / d as f64;
-        (0..d)
-            .map(|o| {
-                let (a, b) = (o as f64 * scale, (o + 1) as f64 * scale);
-                (a.floor() as usize..(b.ceil() as usize).min(s))
-                    .map(|i| (i, ((b.min(i as f64 + 1.0) - a.max(i as f64)) / scale) as f32))
-                    .filter(|&(_, w)| w > 0.0)
-                    .collect()
-            })
-            .collect()
-    };
-    let (wx, wy) = (weights(sw, dw), weights(sh, dh));
-    let mut rows = vec![0f32; sh * dw];
-    for y in 0..sh {
-        for (x, ws) in wx.iter().enumerate() {
-            rows[y * dw + x] = ws.iter().map(|&(i, w)| src[y * sw + i] * w).sum();
-        }
-    }
-    let mut out = vec![0f32; dh * dw];
-    for (y, ws) in wy.iter().enumerate() {
-        for x in 0..dw {
-            out[y * dw + x] = ws.iter().map(|&(i, w)| rows[i * dw + x] * w).sum();
-        }
-    }
-    out
-}
 
 /// Copies a real folder to `out` at `width x height` (e.g. 1024x768 -> 640x480), boxes scaled
 /// with the image; labels from YOLO txt beside each image or a COCO JSON (`coco`).

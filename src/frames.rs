@@ -5,7 +5,7 @@ use crate::metrics::coco_map::Truth;
 use crate::optics::npy;
 use crate::tensor::Tensor;
 use anyhow::{anyhow, bail, Context, Result};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 #[derive(Clone)]
 pub struct Frame {
@@ -23,14 +23,14 @@ pub struct Frame {
 pub fn load_folder(dir: &Path, height: usize, width: usize) -> Result<Vec<Frame>> {
     let (mut resized, mut colour) = (Vec::new(), 0usize);
     let mut frames = Vec::new();
-    for f in crate::dataset::image_files(dir)? {
+    for f in crate::frames::image_files(dir)? {
         let g = decode(&f).with_context(|| format!("{}", f.display()))?;
         colour += usize::from(g.channels > 1);
         let data = if (g.w, g.h) == (width, height) {
             g.data
         } else {
             resized.push((g.w, g.h));
-            crate::dataset::resize_area(&g.data, g.w, g.h, width, height)
+            crate::frames::resize_area(&g.data, g.w, g.h, width, height)
         };
         let labels = read_yolo_labels(&f.with_extension("txt"), width as f32, height as f32)?;
         frames.push(Frame { name: f.file_name().unwrap_or_default().to_string_lossy().into_owned(), image: Tensor::f32(vec![1, 1, height, width], data), labels });
@@ -50,7 +50,7 @@ pub fn count(dir: &Path) -> Result<usize> {
     if !dir.is_dir() {
         bail!("no such folder");
     }
-    Ok(crate::dataset::image_files(dir)?.len())
+    Ok(crate::frames::image_files(dir)?.len())
 }
 
 /// A frame as stored, before any resizing: luma values in [0, 1].
@@ -166,4 +166,79 @@ pub fn synthetic(n: usize, height: usize, width: usize, seed: u64) -> Vec<Frame>
             Frame { name: format!("synthetic_{k}"), image: Tensor::f32(vec![1, 1, height, width], data), labels: None }
         })
         .collect()
+}
+
+/// A window of a frame, in pixels: what a scene's `roi` keeps, and what a cropped model sees
+/// of its teacher's frame.
+#[derive(Clone, Copy, Debug, serde::Deserialize, serde::Serialize, PartialEq, Eq)]
+#[serde(deny_unknown_fields)]
+pub struct Roi {
+    pub x: usize,
+    pub y: usize,
+    pub w: usize,
+    pub h: usize,
+}
+
+impl Roi {
+    /// Whether a box (x1, y1, x2, y2) lies inside, at least `margin` pixels from every edge.
+    pub fn contains(&self, b: &[f32; 4], margin: f32) -> bool {
+        let (x0, y0) = (self.x as f32 + margin, self.y as f32 + margin);
+        let (x1, y1) = ((self.x + self.w) as f32 - margin, (self.y + self.h) as f32 - margin);
+        b[0] >= x0 && b[1] >= y0 && b[2] <= x1 && b[3] <= y1
+    }
+
+    /// The ROI of a [.., H, W] image (None when the image does not hold it).
+    pub fn crop(&self, t: &crate::tensor::Tensor) -> Option<crate::tensor::Tensor> {
+        let n = t.shape.len();
+        if n < 2 {
+            return None;
+        }
+        let rows: Vec<usize> = (self.y..self.y + self.h).collect();
+        let cols: Vec<usize> = (self.x..self.x + self.w).collect();
+        t.select(n - 2, &rows).and_then(|c| c.select(n - 1, &cols))
+    }
+}
+
+/// The image files of a folder (PNG, TIFF, .npy), sorted; an error when there are none.
+pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("cannot read {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| matches!(p.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref(), Some("png" | "tif" | "tiff" | "npy")))
+        .collect();
+    v.sort();
+    if v.is_empty() {
+        bail!("{} holds no .png, .tif or .npy images", dir.display());
+    }
+    Ok(v)
+}
+
+/// Area-average resampling (exact box integration), row-major.
+pub fn resize_area(src: &[f32], sw: usize, sh: usize, dw: usize, dh: usize) -> Vec<f32> {
+    let weights = |s: usize, d: usize| -> Vec<Vec<(usize, f32)>> {
+        let scale = s as f64 / d as f64;
+        (0..d)
+            .map(|o| {
+                let (a, b) = (o as f64 * scale, (o + 1) as f64 * scale);
+                (a.floor() as usize..(b.ceil() as usize).min(s))
+                    .map(|i| (i, ((b.min(i as f64 + 1.0) - a.max(i as f64)) / scale) as f32))
+                    .filter(|&(_, w)| w > 0.0)
+                    .collect()
+            })
+            .collect()
+    };
+    let (wx, wy) = (weights(sw, dw), weights(sh, dh));
+    let mut rows = vec![0f32; sh * dw];
+    for y in 0..sh {
+        for (x, ws) in wx.iter().enumerate() {
+            rows[y * dw + x] = ws.iter().map(|&(i, w)| src[y * sw + i] * w).sum();
+        }
+    }
+    let mut out = vec![0f32; dh * dw];
+    for (y, ws) in wy.iter().enumerate() {
+        for x in 0..dw {
+            out[y * dw + x] = ws.iter().map(|&(i, w)| rows[i * dw + x] * w).sum();
+        }
+    }
+    out
 }

@@ -55,7 +55,7 @@ pub fn gate(data: &[u8]) {
 /// Stress condition files, expanded and applied to a small frame.
 pub fn conditions(data: &[u8]) {
     let Ok(text) = std::str::from_utf8(data) else { return };
-    if let Ok(set) = crate::stress::conditions::parse(text, std::path::Path::new("/nonexistent")) {
+    if let Ok(set) = crate::optics::conditions::parse(text, std::path::Path::new("/nonexistent")) {
         let frame = crate::tensor::Tensor::f32(vec![1, 1, 8, 8], (0..64).map(|i| i as f32 / 64.0).collect());
         for c in set.conditions.iter().take(8) {
             let _ = c.apply_tensor(&frame, 1);

@@ -180,3 +180,15 @@ impl Report {
         s
     }
 }
+
+#[derive(Serialize, Clone, Copy)]
+pub struct Counts {
+    pub nodes: usize,
+    pub params: u64,
+    pub macs: u64,
+}
+
+pub fn counts(model: &ModelProto) -> Result<Counts> {
+    let r = inspect(model)?;
+    Ok(Counts { nodes: r.nodes, params: r.params.total, macs: r.macs.total })
+}

@@ -239,7 +239,7 @@ pub fn run(req: &RunRequest) -> Result<RunReport> {
             Some(scene) => (in_scene(scene, this.frame_size(), &sizes, &theirs.eval), in_scene(scene, this.frame_size(), &sizes, &mine.eval)),
             None => (theirs.eval.clone(), mine.eval.clone()),
         };
-        let (truth, how) = crate::verify::agreement_truth(&reference, classes);
+        let (truth, how) = crate::metrics::validation::agreement_truth(&reference, classes);
         Comparison { other: theirs.side(o, truths.as_deref()), agreement: coco_map(&truth, &candidate, classes), truth: how, only_this, only_other }
     });
     let categories: Vec<serde_json::Value> = this.class_names().iter().enumerate().map(|(i, n)| serde_json::json!({ "id": i, "name": n })).collect();

@@ -322,7 +322,7 @@ pub(crate) fn time_together(t: &Timing) -> Result<Vec<f64>> {
     for (n, rt, i) in loaded.iter_mut() {
         models.push((n.clone(), rt.as_mut(), std::mem::take(i)));
     }
-    let latency = crate::verify::latency::interleaved(&mut models, t.runs)?;
+    let latency = crate::runtime::latency::interleaved(&mut models, t.runs)?;
     Ok(latency.into_iter().map(|l| l.median_ms).collect())
 }
 

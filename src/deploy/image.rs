@@ -45,7 +45,7 @@ pub fn list(spec: &Path) -> Result<Vec<PathBuf>> {
         return sequence(&text, at);
     }
     if spec.is_dir() {
-        return crate::dataset::image_files(spec);
+        return crate::frames::image_files(spec);
     }
     if !spec.exists() {
         bail!("{}: no such frame, folder or sequence", spec.display());

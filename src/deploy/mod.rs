@@ -34,19 +34,10 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-/// Validation's candidate threshold (YOLO val): low, so the precision-recall curve is
-/// complete; what mAP against labels is computed from, here and in `verify`.
-pub const EVAL_CONF: f32 = 0.001;
 /// A deployment's usual score cut (ultralytics predict's default).
 pub const DEFAULT_CONF: f32 = 0.25;
-/// Detections kept per frame (ultralytics' max_det).
-pub const DEFAULT_MAX_DET: usize = 300;
 
-/// NMS IoU threshold of ultralytics' validation for each head: `run` and `verify` use the same,
-/// so `run`'s mAP against labels is `verify`'s.
-pub fn default_iou(kind: HeadKind) -> f32 {
-    if kind == HeadKind::Yolov8Dfl { 0.7 } else { 0.6 }
-}
+pub use crate::metrics::validation::{default_iou, DEFAULT_MAX_DET, EVAL_CONF};
 
 /// How to run an artifact; `None` takes the artifact's own choice (its recommended engine,
 /// tract's fastest thread count, the scene's score threshold and detection cap).
@@ -230,7 +221,7 @@ impl Detector {
     /// replicated into the image input's channels, the blur map beside it where it is an input.
     fn feeds(&self, frame: &Image) -> Result<Vec<(String, Tensor)>> {
         let (h, w) = self.frame;
-        let data = if (frame.height, frame.width) == (h, w) { frame.data.clone() } else { crate::dataset::resize_area(&frame.data, frame.width, frame.height, w, h) };
+        let data = if (frame.height, frame.width) == (h, w) { frame.data.clone() } else { crate::frames::resize_area(&frame.data, frame.width, frame.height, w, h) };
         let mut image = Tensor::f32(vec![1, 1, h, w], data);
         if let Some(r) = self.scene.as_ref().and_then(|s| s.roi) {
             image = r.crop(&image).ok_or_else(|| anyhow!("the frame does not hold the ROI"))?;

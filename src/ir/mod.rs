@@ -5,6 +5,7 @@
 
 pub mod cost;
 pub mod graph;
+pub mod rewrite;
 pub mod shapes;
 
 pub use graph::Graph;

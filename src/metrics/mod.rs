@@ -1,4 +1,6 @@
-//! Accuracy measures: tensor agreement and COCO-style detection mAP.
+//! Accuracy measures: tensor agreement, COCO-style detection mAP, and validation's decode
+//! and agreement rules.
 
 pub mod coco_map;
+pub mod validation;
 pub mod tensor_error;

@@ -113,13 +113,6 @@ pub fn remove_nodes(g: &mut GraphProto, dead: &HashSet<usize>) {
     });
 }
 
-/// Reorders nodes so producers come first (ONNX requires it; edits may append nodes).
-pub fn sort_topologically(g: &mut GraphProto) -> anyhow::Result<()> {
-    let order = crate::ir::Graph::build(g)?.order;
-    let mut nodes: Vec<Option<super::proto::NodeProto>> = std::mem::take(&mut g.node).into_iter().map(Some).collect();
-    g.node = order.into_iter().map(|i| nodes[i].take().expect("each index once")).collect();
-    Ok(())
-}
 
 /// A value's declaration with a static shape.
 pub fn tensor_value_info(name: &str, dtype: crate::tensor::DType, shape: &[usize]) -> crate::onnx::proto::ValueInfoProto {

@@ -2,6 +2,7 @@
 //! synthetic thermal scenes.
 
 pub mod blur_index;
+pub mod conditions;
 pub mod blur_map;
 pub mod degrade;
 pub mod fft2;

@@ -11,7 +11,7 @@ use crate::onnx::edit::set_initializer;
 use crate::onnx::proto::ModelProto;
 use crate::onnx::tensor_proto::from_tensor;
 use crate::optics::blur_map::BlurMap;
-use crate::pipeline::{Pass, PassContext};
+use super::{Pass, PassContext};
 use crate::tensor::Tensor;
 use anyhow::{bail, Result};
 
@@ -43,7 +43,7 @@ impl Pass for BindPsf {
         }
     }
 
-    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {
         let maps = blur_maps(model)?;
         let psf_file = cx.psf.as_ref().or(self.options.psf.as_ref());
         if maps.is_empty() {

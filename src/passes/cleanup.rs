@@ -5,7 +5,7 @@
 
 use crate::onnx::edit::{remove_nodes, replace_value};
 use crate::onnx::proto::ModelProto;
-use crate::pipeline::{Pass, PassContext};
+use super::{Pass, PassContext};
 use anyhow::Result;
 use sha2::{Digest, Sha256};
 use std::collections::{HashMap, HashSet};
@@ -17,7 +17,7 @@ impl Pass for Cleanup {
         "cleanup"
     }
 
-    fn run(&self, model: &mut ModelProto, _: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, _: &mut PassContext) -> Result<serde_json::Value> {
         let g = super::graph_mut(model)?;
         let mut bypassed = HashSet::new();
         for i in 0..g.node.len() {

@@ -24,7 +24,7 @@
 //! and per pool the chosen fit and its held-out error relative to the uncorrected mean's.
 
 use crate::onnx::proto::ModelProto;
-use crate::pipeline::{Pass, PassContext, Teacher};
+use super::{Pass, PassContext};
 use crate::calib_frames::image_feeds;
 use crate::ir::{infer, Graph};
 use crate::scene::geometry::{self, Cut};
@@ -82,11 +82,11 @@ impl Pass for CropRoi {
         "crop-roi"
     }
 
-    fn provides(&self) -> Vec<crate::pipeline::Capability> {
-        vec![crate::pipeline::Capability::Teacher]
+    fn provides(&self) -> Vec<super::Capability> {
+        vec![super::Capability::Teacher]
     }
 
-    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {
         let Some(roi) = cx.scene.as_ref().and_then(|s| s.roi) else {
             return Ok(serde_json::json!({ "skipped": "the scene has no roi" }));
         };
@@ -103,12 +103,7 @@ impl Pass for CropRoi {
         let estimates: Vec<String> = float_initializers(model).difference(&constants).cloned().collect();
         meta.roi = Some(roi);
         // The full model, on full frames, is what recovery distills the cropped one from.
-        let mut teacher = cx.teacher.borrow_mut();
-        match teacher.as_mut() {
-            Some(t) => (t.window, t.estimates) = (Some(roi), estimates),
-            None => *teacher = Some(Teacher { model: before, kept: Default::default(), window: Some(roi), estimates }),
-        }
-        drop(teacher);
+        cx.record_window(|| before, roi, estimates);
         meta.write(model)?;
         set_metadata(model, "imgsz", &format!("[{}, {}]", roi.h, roi.w));
         Ok(serde_json::json!({
@@ -129,7 +124,7 @@ fn float_initializers(model: &ModelProto) -> std::collections::BTreeSet<String> 
 }
 
 impl CropRoi {
-    fn halos(&self, model: &mut ModelProto, full: &ModelProto, roi: crate::scene::Roi, frame: [usize; 2], cx: &PassContext) -> Result<serde_json::Value> {
+    fn halos(&self, model: &mut ModelProto, full: &ModelProto, roi: crate::frames::Roi, frame: [usize; 2], cx: &PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
         if o.halo == Mode::Zero {
             return Ok(serde_json::json!({ "mode": o.halo }));

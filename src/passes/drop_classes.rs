@@ -19,7 +19,7 @@ use crate::ir::{infer, Graph};
 use crate::onnx::edit::{initializer, set_input_constant};
 use crate::onnx::proto::ModelProto;
 use crate::onnx::tensor_proto::to_tensor;
-use crate::pipeline::{Pass, PassContext, Teacher};
+use super::{Pass, PassContext};
 use crate::scene::{class_names, names_metadata, set_metadata, SceneMeta};
 use crate::tensor::{Tensor, TensorData};
 use anyhow::{anyhow, bail, Result};
@@ -31,11 +31,11 @@ impl Pass for DropClasses {
         "drop-classes"
     }
 
-    fn provides(&self) -> Vec<crate::pipeline::Capability> {
-        vec![crate::pipeline::Capability::Teacher]
+    fn provides(&self) -> Vec<super::Capability> {
+        vec![super::Capability::Teacher]
     }
 
-    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {
         let Some(scene) = cx.scene.as_ref().filter(|s| s.classes.is_some()) else {
             return Ok(serde_json::json!({ "skipped": "the scene names no classes" }));
         };
@@ -93,12 +93,7 @@ impl Pass for DropClasses {
         }
         crate::scene::geometry::follow_shapes(g, &old)?;
         let rows_kept: std::collections::HashMap<String, Vec<usize>> = rows_of.into_iter().collect();
-        let mut teacher = cx.teacher.borrow_mut();
-        match teacher.as_mut() {
-            Some(t) => t.compose(&rows_kept),
-            None => *teacher = Some(Teacher { model: before, kept: rows_kept, window: None, estimates: Vec::new() }),
-        }
-        drop(teacher);
+        cx.record_cut(|| before, &rows_kept);
 
         let kept_names: Vec<String> = kept.iter().map(|&i| names[i].clone()).collect();
         set_metadata(model, "names", &names_metadata(&kept_names));

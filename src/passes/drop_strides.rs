@@ -27,7 +27,7 @@ use crate::detect::{decode, nms::nms, Detection};
 use crate::ir::{infer, Graph};
 use crate::onnx::proto::ModelProto;
 use crate::onnx::tensor_proto::to_tensor;
-use crate::pipeline::{Pass, PassContext};
+use super::{Pass, PassContext};
 use crate::runtime::{ort_runtime::OrtRuntime, Runtime};
 use crate::scene::geometry::{self, Cut, Level};
 use crate::scene::{Roi, SceneMeta};
@@ -71,7 +71,7 @@ impl Pass for DropStrides {
         "drop-strides"
     }
 
-    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {
         let Some(scene) = cx.scene.as_ref().filter(|s| s.object_px.is_some()) else {
             return Ok(serde_json::json!({ "skipped": "the scene gives no object_px" }));
         };

@@ -16,7 +16,7 @@ use crate::onnx::attr;
 use crate::onnx::edit::{fresh_name, initializer, remove_nodes, replace_value, set_initializer, set_input_constant};
 use crate::onnx::proto::{GraphProto, ModelProto, NodeProto};
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
-use crate::pipeline::{Pass, PassContext};
+use super::{Pass, PassContext};
 use crate::tensor::Tensor;
 use anyhow::Result;
 use std::collections::HashSet;
@@ -84,7 +84,7 @@ impl Pass for FoldBn {
         "fold-bn"
     }
 
-    fn run(&self, model: &mut ModelProto, _: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, _: &mut PassContext) -> Result<serde_json::Value> {
         let g = super::graph_mut(model)?;
         let (mut folded, mut mul_add, mut left) = (0, 0, Vec::new());
         let mut dead = HashSet::new();
@@ -122,8 +122,8 @@ impl Pass for FoldBn {
             }
         }
         remove_nodes(g, &dead);
-        crate::onnx::edit::sort_topologically(g)?;
-        super::dce::eliminate(g)?;
+        crate::ir::rewrite::topo::sort_topologically(g)?;
+        crate::ir::rewrite::dce::eliminate(g)?;
         Ok(serde_json::json!({ "folded_into_conv": folded, "to_mul_add": mul_add, "left": left }))
     }
 }

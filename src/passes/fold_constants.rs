@@ -8,10 +8,11 @@
 //! value's shape static when the graph inputs' are (written to value_info).
 //! Reports: nodes folded, values materialized, bytes added, values still without a static shape.
 
+use crate::ir::rewrite::value_info::write_value_info;
 use crate::ir::{infer, Graph};
 use crate::onnx::proto::{GraphProto, ModelProto, NodeProto, ValueInfoProto};
 use crate::onnx::tensor_proto::from_tensor;
-use crate::pipeline::{Pass, PassContext};
+use super::{Pass, PassContext};
 use crate::runtime::{ort_runtime::OrtRuntime, Runtime};
 use anyhow::{Context, Result};
 use std::collections::{HashMap, HashSet};
@@ -42,7 +43,7 @@ impl Pass for FoldConstants {
         "fold-constants"
     }
 
-    fn run(&self, model: &mut ModelProto, _: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, _: &mut PassContext) -> Result<serde_json::Value> {
         let plan = plan(model, self.options.max_elements)?;
         let mut bytes_added = 0usize;
         if !plan.frontier.is_empty() {
@@ -58,7 +59,7 @@ impl Pass for FoldConstants {
             }
         }
         let g = super::graph_mut(model)?;
-        super::dce::eliminate(g)?;
+        crate::ir::rewrite::dce::eliminate(g)?;
         let not_static = write_value_info(g)?;
         Ok(serde_json::json!({
             "nodes_folded": plan.foldable.len(),
@@ -159,24 +160,3 @@ fn evaluation_model(model: &ModelProto, plan: &Plan) -> ModelProto {
     ModelProto { ir_version: model.ir_version, opset_import: model.opset_import.clone(), graph: Some(graph), ..Default::default() }
 }
 
-/// Records inferred types in value_info (outputs and inputs excluded); returns how many
-/// intermediate values still lack a static shape.
-pub fn write_value_info(g: &mut GraphProto) -> Result<usize> {
-    let (infos, missing) = {
-        let graph = Graph::build(g)?;
-        let inf = infer(&graph);
-        let interface: HashSet<&str> = g.input.iter().chain(&g.output).map(|v| v.name.as_str()).collect();
-        let mut infos = Vec::new();
-        let mut missing = 0;
-        for o in g.node.iter().flat_map(|n| n.output.iter()).filter(|o| !o.is_empty() && !interface.contains(o.as_str())) {
-            let t = inf.types.get(o);
-            match (t.and_then(|t| t.static_shape()), t.and_then(|t| t.dtype)) {
-                (Some(s), Some(dt)) => infos.push(crate::onnx::edit::tensor_value_info(o, dt, &s)),
-                _ => missing += 1,
-            }
-        }
-        (infos, missing)
-    };
-    g.value_info = infos;
-    Ok(missing)
-}

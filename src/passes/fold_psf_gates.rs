@@ -17,7 +17,7 @@ use crate::ir::{infer, Graph};
 use crate::onnx::edit::{fresh_name, initializer, remove_nodes, replace_value, set_initializer};
 use crate::onnx::proto::{GraphProto, ModelProto};
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
-use crate::pipeline::{Pass, PassContext};
+use super::{Pass, PassContext};
 use crate::tensor::Tensor;
 use anyhow::Result;
 use std::collections::HashSet;
@@ -52,7 +52,7 @@ impl Pass for FoldPsfGates {
         "fold-psf-gates"
     }
 
-    fn run(&self, model: &mut ModelProto, _: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, _: &mut PassContext) -> Result<serde_json::Value> {
         let g = super::graph_mut(model)?;
         let fusions = find_fusions(g)?;
         if fusions.is_empty() {
@@ -76,7 +76,7 @@ impl Pass for FoldPsfGates {
             }
         }
         remove_nodes(g, &dead);
-        super::dce::eliminate(g)?;
+        crate::ir::rewrite::dce::eliminate(g)?;
         Ok(serde_json::json!({ "gates": gates_report }))
     }
 }

@@ -9,7 +9,7 @@
 
 use crate::onnx::attr;
 use crate::onnx::proto::{GraphProto, ModelProto};
-use crate::pipeline::{Pass, PassContext};
+use super::{Pass, PassContext};
 use anyhow::Result;
 use std::collections::HashSet;
 
@@ -20,7 +20,7 @@ impl Pass for PromoteConstants {
         "promote-constants"
     }
 
-    fn run(&self, model: &mut ModelProto, _: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, _: &mut PassContext) -> Result<serde_json::Value> {
         if model.ir_version < 4 {
             // Before IR 4 every initializer must also be listed as a graph input.
             return Ok(serde_json::json!({ "constants_promoted": 0, "skipped": "IR version below 4" }));

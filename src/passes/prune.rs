@@ -21,7 +21,9 @@ use crate::ir::{infer, Graph};
 use crate::quant::attribution::{output_errors, worst_rel_l2, OutputError};
 use crate::onnx::edit::expose_outputs;
 use crate::onnx::proto::ModelProto;
-use crate::pipeline::{counts, Clock, Pass, PassContext, Teacher};
+use super::{Pass, PassContext};
+use crate::clock::Clock;
+use crate::inspect::counts;
 use crate::prune::compensate::{self, Mode};
 use crate::prune::importance::{self, Criterion};
 use crate::prune::sensitivity::{allocate as allocate_ratios, Budget, GroupSensitivity, Level, LEVELS};
@@ -99,8 +101,8 @@ impl Pass for Prune {
         "prune"
     }
 
-    fn provides(&self) -> Vec<crate::pipeline::Capability> {
-        vec![crate::pipeline::Capability::Teacher]
+    fn provides(&self) -> Vec<super::Capability> {
+        vec![super::Capability::Teacher]
     }
 
     fn check(&self) -> Result<()> {
@@ -121,7 +123,7 @@ impl Pass for Prune {
         }
     }
 
-    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
         let mut clock = Clock::default();
         let original = model.clone();
@@ -162,18 +164,11 @@ impl Pass for Prune {
         let kept = apply::kept_positions(&analysis, &plan.keep)?;
         let pg = super::graph_mut(model)?;
         let rewritten = apply::apply(pg, &analysis, &kept, opset)?;
-        super::dce::eliminate(pg)?;
+        crate::ir::rewrite::dce::eliminate(pg)?;
         check_outputs(&original, model)?;
         // A scene specialization before pruning already left the full model as the teacher:
         // recovery then distills from it, through both cuts.
-        let teacher = match cx.teacher.take() {
-            Some(mut t) => {
-                t.compose(&kept);
-                t
-            }
-            None => Teacher { model: original.clone(), kept: kept.clone(), window: None, estimates: Vec::new() },
-        };
-        cx.teacher.replace(Some(teacher));
+        cx.record_cut(|| original.clone(), &kept);
         clock.lap("rewrite");
 
         let (fit, held_out): (Vec<_>, Vec<_>) = feeds.iter().enumerate().partition(|(i, _)| feeds.len() < 4 || i % 4 != 3);
@@ -184,7 +179,7 @@ impl Pass for Prune {
         let held_out: Vec<Vec<(String, Tensor)>> = if held_out.is_empty() { fit.clone() } else { held_out.into_iter().map(|(_, f)| f.clone()).collect() };
         let uncompensated = (o.compensate != Mode::None).then(|| model.clone());
         let comp = compensate::compensate(&original, model, &kept, &fit, &compensate::Options { mode: o.compensate, lambda: o.ridge, max_positions: MAX_REGRESSION_POSITIONS })?;
-        super::dce::eliminate(super::graph_mut(model)?)?;
+        crate::ir::rewrite::dce::eliminate(super::graph_mut(model)?)?;
         clock.lap("compensation");
 
         let mut errors = serde_json::Map::new();
@@ -244,7 +239,7 @@ fn allocate(original: &ModelProto, analysis: &crate::analysis::channels::Channel
         let mut m = original.clone();
         let g = super::graph_mut(&mut m)?;
         apply::apply(g, analysis, &kept, opset)?;
-        super::dce::eliminate(g)?;
+        crate::ir::rewrite::dce::eliminate(g)?;
         Ok((m, plan))
     };
     let base = counts(original)?.macs;
@@ -289,7 +284,7 @@ fn allocate(original: &ModelProto, analysis: &crate::analysis::channels::Channel
 /// ONNX Runtime latency of `candidate` over `reference`'s, timed interleaved on one frame.
 fn latency_ratio(reference: &mut OrtRuntime, candidate: &ModelProto, feed: &[(String, Tensor)]) -> Result<f64> {
     let mut c = OrtRuntime::new(candidate)?;
-    let t = crate::verify::latency::interleaved(&mut [("reference".into(), reference as &mut dyn Runtime, feed.to_vec()), ("candidate".into(), &mut c, feed.to_vec())], 7)?;
+    let t = crate::runtime::latency::interleaved(&mut [("reference".into(), reference as &mut dyn Runtime, feed.to_vec()), ("candidate".into(), &mut c, feed.to_vec())], 7)?;
     Ok(t[1].median_ms / t[0].median_ms.max(1e-9))
 }
 

@@ -20,7 +20,8 @@
 use crate::calib_frames::{image_feeds, image_feeds_from};
 use crate::ir::{infer, Graph};
 use crate::onnx::proto::ModelProto;
-use crate::pipeline::{Clock, Pass, PassContext};
+use super::{Pass, PassContext};
+use crate::clock::Clock;
 use crate::quant::attribution::{self, worst_rel_l2, LayerError};
 use crate::quant::collect::{statistics, Statistics};
 use crate::quant::params::{degenerate_range, quantize_weights, weight_rounding_shift, ActivationType, QParams};
@@ -259,14 +260,14 @@ impl Pass for Quantize {
         self.options.check()
     }
 
-    fn needs(&self) -> Vec<crate::pipeline::Capability> {
+    fn needs(&self) -> Vec<super::Capability> {
         match &self.options.qat {
-            Some(q) if q.teacher == QatTeacher::Original => vec![crate::pipeline::Capability::Teacher],
+            Some(q) if q.teacher == QatTeacher::Original => vec![super::Capability::Teacher],
             _ => Vec::new(),
         }
     }
 
-    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
         let original = match &o.qat {
             Some(q) if q.teacher == QatTeacher::Original => Some(original_teacher(cx)?),
@@ -283,7 +284,7 @@ impl Pass for Quantize {
         // Held-out frames come after the calibration frames; a folder too small for both
         // measures on its last calibration frames, and the report says so.
         let (held_out, overlap) = if feeds.len() > calib { (feeds.split_off(calib), false) } else { (feeds.iter().rev().take(o.held_out_frames.max(1)).cloned().collect(), true) };
-        let conditions = crate::stress::conditions::by_name(&o.calib_conditions)?;
+        let conditions = crate::optics::conditions::by_name(&o.calib_conditions)?;
         if let Some(c) = conditions.iter().find(|c| c.changes_blur()) {
             bail!("calib_conditions: '{}' changes the blur map, which the quantized model has folded in; pick conditions that change frames", c.name);
         }
@@ -415,9 +416,12 @@ impl Pass for Quantize {
         // What ONNX Runtime makes of it: QLinearConv etc. where it fused, Conv where it did not.
         let ort_ops = crate::runtime::ort_runtime::OrtRuntime::optimized_ops(&quantized)?;
         *model = quantized;
-        super::dce::eliminate(super::graph_mut(model)?)?;
+        crate::ir::rewrite::dce::eliminate(super::graph_mut(model)?)?;
         let qlinear_convs = if o.format == Format::Qlinear { Some(crate::quant::qlinear::to_qlinear_conv(super::graph_mut(model)?)?) } else { None };
         clock.lap("held_out_check");
+        for w in warnings {
+            cx.warn(w);
+        }
         let float_nodes: Vec<serde_json::Value> = current.float.iter().map(|(&i, why)| serde_json::json!({"node": g.node[i].name, "op": g.node[i].op_type, "why": why})).collect();
         Ok(serde_json::json!({
             "method": o.method,
@@ -435,7 +439,6 @@ impl Pass for Quantize {
             "rounding": learned.map_or(serde_json::json!({"method": "nearest"}), |l| l.report),
             "qat": qat,
             "emitted": emitted,
-            "warnings": warnings,
             "ort_optimized_ops": ort_ops,
             "mixed_precision": { "error_budget": o.error_budget, "kept_float": mixed.kept, "tried_and_rejected": mixed.rejected, "note": mixed.warning },
             "hard_limit": o.hard_limit,
@@ -468,7 +471,7 @@ fn check_hard_limit(outputs: &[attribution::OutputError], layers: &[LayerError],
         return Ok(());
     }
     let worst: Vec<String> = layers.iter().take(3).map(|l| format!("{} ({:.3})", l.node, l.accumulated.map_or(l.alone.rel_l2, |e| e.rel_l2))).collect();
-    Err(crate::pipeline::QualityFailure(format!(
+    Err(super::QualityFailure(format!(
         "INT8 broke the model: {} against {against} on {frames} held-out frames, past the hard limit (rel L2 {}, cosine {}); worst layers: {}. Calibrate on frames like the model's input (--calib), keep those layers float (keep_float), or raise hard_limit if this is expected",
         broken.join(", "),
         limit.max_rel_l2,
@@ -480,8 +483,8 @@ fn check_hard_limit(outputs: &[attribution::OutputError], layers: &[LayerError],
 
 /// The model before an earlier `prune`, for `qat: {teacher: original}`: the same frames
 /// reach both models, so a scene crop (whose teacher sees full frames) is refused.
-fn original_teacher(cx: &PassContext) -> Result<crate::pipeline::Teacher> {
-    let t = cx.teacher.borrow().clone().ok_or_else(|| anyhow!("qat's `teacher: original` distills from the model before pruning: put a prune pass before quantize, or use `teacher: float`"))?;
+fn original_teacher(cx: &PassContext) -> Result<super::Teacher> {
+    let t = cx.teacher.clone().ok_or_else(|| anyhow!("qat's `teacher: original` distills from the model before pruning: put a prune pass before quantize, or use `teacher: float`"))?;
     if t.window.is_some() {
         bail!("qat's `teacher: original` does not take a scene ROI (the original sees full frames, the quantized model their crop); use `teacher: float`");
     }
@@ -496,7 +499,7 @@ fn original_teacher(cx: &PassContext) -> Result<crate::pipeline::Teacher> {
 /// Returns the model kept, the report, and the kept model's held-out output errors against
 /// its teacher.
 #[allow(clippy::too_many_arguments)]
-fn quantization_aware(float: &ModelProto, original: Option<&crate::pipeline::Teacher>, quantized: ModelProto, frames: Vec<crate::tensor::Tensor>, held_out: &[Vec<(String, crate::tensor::Tensor)>], o: &Options, q: &Qat, scale_groups: Vec<Vec<String>>, threads: usize) -> Result<(ModelProto, serde_json::Value, Vec<attribution::OutputError>)> {
+fn quantization_aware(float: &ModelProto, original: Option<&super::Teacher>, quantized: ModelProto, frames: Vec<crate::tensor::Tensor>, held_out: &[Vec<(String, crate::tensor::Tensor)>], o: &Options, q: &Qat, scale_groups: Vec<Vec<String>>, threads: usize) -> Result<(ModelProto, serde_json::Value, Vec<attribution::OutputError>)> {
     if frames.len() < q.batch {
         bail!("qat has {} calibration frames for batches of {}; raise calib_frames or lower qat's batch", frames.len(), q.batch);
     }
@@ -567,7 +570,7 @@ fn collection_cost(float: &ModelProto, feeds: &[Vec<(String, crate::tensor::Tens
 
 /// Puts calibration frame i under condition i % (n + 1) - 1 (frame 0 and every (n + 1)-th
 /// stay clean). Only the image input changes; it is the feeds' only input.
-fn mix_conditions(feeds: &mut [Vec<(String, crate::tensor::Tensor)>], conditions: &[crate::stress::conditions::Condition], seed: u64) {
+fn mix_conditions(feeds: &mut [Vec<(String, crate::tensor::Tensor)>], conditions: &[crate::optics::conditions::Condition], seed: u64) {
     let n = conditions.len() + 1;
     for (i, f) in feeds.iter_mut().enumerate().filter(|(i, _)| i % n != 0) {
         for (_, t) in f.iter_mut() {

@@ -18,7 +18,7 @@ use crate::calib_frames::{affordable_frames, image_feeds};
 use crate::ir::{infer, Graph};
 use crate::onnx::proto::ModelProto;
 use super::prune::by_name;
-use crate::pipeline::{Pass, PassContext, Teacher};
+use super::{Pass, PassContext, Teacher};
 use crate::prune::recover::{distill, Options as Distill};
 use crate::quant::attribution::{output_errors, worst_rel_l2};
 use crate::scene::compare::SceneView;
@@ -112,13 +112,13 @@ impl Pass for Recover {
         self.options.check()
     }
 
-    fn needs(&self) -> Vec<crate::pipeline::Capability> {
-        vec![crate::pipeline::Capability::Teacher]
+    fn needs(&self) -> Vec<super::Capability> {
+        vec![super::Capability::Teacher]
     }
 
-    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
-        let Teacher { model: teacher, kept, window, estimates } = cx.teacher.borrow().clone().ok_or_else(|| anyhow!("recover distills a pruned or scene-specialized model from the model before: put a prune pass before it in the recipe (or specialize with --scene)"))?;
+        let Teacher { model: teacher, kept, window, estimates } = cx.teacher.clone().ok_or_else(|| anyhow!("recover distills a pruned or scene-specialized model from the model before: put a prune pass before it in the recipe (or specialize with --scene)"))?;
         // Frames are the teacher's: with a scene ROI the student sees their crop.
         let g = teacher.graph.as_ref().ok_or_else(|| anyhow!("teacher has no graph"))?;
         let graph = Graph::build(g)?;

@@ -15,7 +15,7 @@ use crate::onnx::attr;
 use crate::onnx::edit::{fresh_name, set_initializer};
 use crate::onnx::proto::{ModelProto, NodeProto};
 use crate::onnx::tensor_proto::from_tensor;
-use crate::pipeline::{Pass, PassContext};
+use super::{Pass, PassContext};
 use crate::tensor::Tensor;
 use anyhow::Result;
 
@@ -48,7 +48,7 @@ impl Pass for ResizeToDeconv {
         "resize-to-deconv"
     }
 
-    fn run(&self, model: &mut ModelProto, _: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, _: &mut PassContext) -> Result<serde_json::Value> {
         let plans: Vec<(usize, Result<(usize, usize, usize), String>)> = {
             let g = model.graph.as_ref().expect("checked by the pipeline");
             let graph = Graph::build(g)?;
@@ -94,7 +94,7 @@ impl Pass for ResizeToDeconv {
                 Err(reason) => left.push(serde_json::json!({ "node": name, "reason": reason })),
             }
         }
-        super::dce::eliminate(g)?;
+        crate::ir::rewrite::dce::eliminate(g)?;
         Ok(serde_json::json!({ "replaced": replaced, "left": left }))
     }
 }

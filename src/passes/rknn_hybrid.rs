@@ -15,13 +15,13 @@
 
 use super::quantize::{Options as QuantizeOptions, Quantize};
 use crate::onnx::proto::{ModelProto, StringStringEntryProto};
-use crate::pipeline::{Pass, PassContext};
+use super::{Pass, PassContext};
 use crate::quant::params::ActivationType;
+use crate::targets::rknn_fp16::{Fp16Layer, METADATA_KEY};
 use crate::quant::range::Method;
 use anyhow::{anyhow, bail, Result};
-use serde::{Deserialize, Serialize};
+use serde::Deserialize;
 
-pub const METADATA_KEY: &str = "pdi.rknn_fp16_layers";
 
 #[derive(serde::Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -42,14 +42,6 @@ impl Default for Options {
     }
 }
 
-/// One layer for the toolkit: the span from `input` to `output` runs in FP16.
-#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
-pub struct Fp16Layer {
-    pub node: String,
-    pub input: String,
-    pub output: String,
-}
-
 pub struct RknnHybrid {
     pub options: Options,
 }
@@ -59,11 +51,11 @@ impl Pass for RknnHybrid {
         "rknn-hybrid"
     }
 
-    fn needs(&self) -> Vec<crate::pipeline::Capability> {
-        vec![crate::pipeline::Capability::SplitHead]
+    fn needs(&self) -> Vec<super::Capability> {
+        vec![super::Capability::SplitHead]
     }
 
-    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {
         crate::detect::split_head::HeadLayout::from_model(model).map_err(|_| anyhow!("rknn-hybrid needs a model from rknn-legalize: put it after rknn-legalize in the recipe"))?;
         let o = &self.options;
         let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
@@ -103,15 +95,6 @@ impl Pass for RknnHybrid {
             "fp16_layers": layers,
             "tried_and_rejected": report["mixed_precision"]["tried_and_rejected"],
             "calibration": report["calibration"],
-            "warnings": report["warnings"],
         }))
-    }
-}
-
-/// The layers stored by this pass (none when it did not run).
-pub fn stored(model: &ModelProto) -> Result<Vec<Fp16Layer>> {
-    match model.metadata_props.iter().find(|p| p.key == METADATA_KEY) {
-        Some(p) => serde_json::from_str(&p.value).map_err(|e| anyhow!("metadata {METADATA_KEY} is not a list of layers: {e}")),
-        None => Ok(Vec::new()),
     }
 }

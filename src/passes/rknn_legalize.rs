@@ -21,10 +21,11 @@ use crate::analysis::head::{self, HeadKind};
 use crate::detect::split_head::{decode_dense, HeadLayout, Level, METADATA_KEY};
 use crate::ir::{infer, shapes::static_image_input, Graph};
 use crate::onnx::attr;
-use crate::onnx::edit::{fresh_name, sort_topologically, tensor_value_info};
+use crate::onnx::edit::{fresh_name, tensor_value_info};
+use crate::ir::rewrite::topo::sort_topologically;
 use crate::onnx::proto::{AttributeProto, GraphProto, ModelProto, NodeProto, StringStringEntryProto};
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
-use crate::pipeline::{Pass, PassContext};
+use super::{Pass, PassContext};
 use crate::runtime::{tract_runtime::TractRuntime, Runtime};
 use crate::tensor::{DType, Tensor};
 use anyhow::{anyhow, bail, Context, Result};
@@ -73,11 +74,11 @@ impl Pass for RknnLegalize {
         "rknn-legalize"
     }
 
-    fn provides(&self) -> Vec<crate::pipeline::Capability> {
-        vec![crate::pipeline::Capability::SplitHead]
+    fn provides(&self) -> Vec<super::Capability> {
+        vec![super::Capability::SplitHead]
     }
 
-    fn run(&self, model: &mut ModelProto, _: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, _: &mut PassContext) -> Result<serde_json::Value> {
         check_opset(model)?;
         let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
         let (_, [_, _, in_h, in_w]) = static_image_input(g, "rknn-legalize")?;
@@ -122,8 +123,8 @@ impl Pass for RknnLegalize {
         outputs.sort_by_key(|o| order.iter().position(|n| *n == o.name));
         g.output = outputs;
         sort_topologically(g)?;
-        let (nodes_removed, _, _) = super::dce::eliminate(g)?;
-        let unshaped = super::fold_constants::write_value_info(g)?;
+        let (nodes_removed, _, _) = crate::ir::rewrite::dce::eliminate(g)?;
+        let unshaped = crate::ir::rewrite::value_info::write_value_info(g)?;
         if unshaped > 0 {
             bail!("{unshaped} values have no static shape after legalization; run fold-constants before rknn-legalize");
         }
@@ -168,7 +169,7 @@ fn decode_tail(model: &ModelProto, decoded: &str, levels: &BTreeMap<usize, Vec<H
     crate::onnx::edit::remove_nodes(g, &cut);
     g.input.extend(convs.iter().map(|c| tensor_value_info(&c.output, DType::F32, &[1, c.channels, c.height, c.width])));
     g.output.retain(|o| o.name == decoded);
-    super::dce::eliminate(g)?;
+    crate::ir::rewrite::dce::eliminate(g)?;
     // The image input (and anything else only the backbone read) is no longer an input.
     let read: std::collections::HashSet<String> = g.node.iter().flat_map(|n| n.input.iter().cloned()).collect();
     g.input.retain(|v| read.contains(&v.name));

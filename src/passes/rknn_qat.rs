@@ -29,7 +29,7 @@ use super::prune::by_name;
 use crate::calib_frames::{calibration_frames, replicate};
 use crate::detect::split_head::HeadLayout;
 use crate::onnx::proto::ModelProto;
-use crate::pipeline::{Pass, PassContext};
+use super::{Pass, PassContext};
 use crate::quant::at_points;
 use crate::quant::attribution::{output_errors_at, worst_rel_l2, OutputError};
 use ort::session::builder::GraphOptimizationLevel;
@@ -97,14 +97,14 @@ impl Pass for RknnQat {
         self.options.check()
     }
 
-    fn needs(&self) -> Vec<crate::pipeline::Capability> {
-        vec![crate::pipeline::Capability::SplitHead]
+    fn needs(&self) -> Vec<super::Capability> {
+        vec![super::Capability::SplitHead]
     }
 
-    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
         let layout = HeadLayout::from_model(model).map_err(|_| anyhow!("rknn-qat needs a model from rknn-legalize: put it after rknn-legalize in the recipe"))?;
-        if !crate::passes::rknn_hybrid::stored(model)?.is_empty() {
+        if !crate::targets::rknn_fp16::stored(model)?.is_empty() {
             bail!("rknn-qat trains every layer in INT8, and this model has rknn-hybrid's FP16 spans: drop rknn-hybrid from the recipe");
         }
         let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;

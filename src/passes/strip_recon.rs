@@ -8,7 +8,7 @@
 use crate::analysis::partition;
 use crate::ir::{infer, Graph};
 use crate::onnx::proto::ModelProto;
-use crate::pipeline::{Pass, PassContext};
+use super::{Pass, PassContext};
 use anyhow::{bail, Result};
 
 #[derive(serde::Serialize, serde::Deserialize, Default)]
@@ -28,7 +28,7 @@ impl Pass for StripRecon {
         "strip-recon"
     }
 
-    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {
         let keep: Vec<String> = match self.options.keep_outputs.clone().or_else(|| cx.keep_outputs.clone()) {
             Some(k) => k,
             None => {
@@ -56,7 +56,7 @@ impl Pass for StripRecon {
         }
         let removed: Vec<String> = g.output.iter().map(|o| o.name.clone()).filter(|o| !keep.contains(o)).collect();
         g.output.retain(|o| keep.contains(&o.name));
-        let (nodes, inits, _) = super::dce::eliminate(g)?;
+        let (nodes, inits, _) = crate::ir::rewrite::dce::eliminate(g)?;
         Ok(serde_json::json!({ "outputs_removed": removed, "outputs_kept": keep, "nodes_removed": nodes, "initializers_removed": inits }))
     }
 }

@@ -12,10 +12,11 @@
 use crate::analysis::channels::head_convolutions;
 use crate::calib_frames::image_feeds;
 use crate::ir::{infer, Graph};
-use crate::onnx::edit::{fresh_name, set_initializer, sort_topologically};
+use crate::onnx::edit::{fresh_name, set_initializer};
+use crate::ir::rewrite::topo::sort_topologically;
 use crate::onnx::proto::{AttributeProto, ModelProto, TypeValue};
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
-use crate::pipeline::{Pass, PassContext};
+use super::{Pass, PassContext};
 use crate::quant::collect::statistics;
 use crate::quant::qdq::node;
 use crate::tensor::{DType, Tensor, TensorData};
@@ -62,7 +63,7 @@ impl Pass for ToFp16 {
         "fp16"
     }
 
-    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value> {
+    fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
         let src = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?.clone();
         let graph = Graph::build(&src)?;
@@ -230,7 +231,7 @@ impl Pass for ToFp16 {
         g.node.extend(casts);
         sort_topologically(&mut g)?;
         model.graph = Some(g);
-        crate::passes::dce::eliminate(crate::passes::graph_mut(model)?)?;
+        crate::ir::rewrite::dce::eliminate(crate::passes::graph_mut(model)?)?;
         let f32_nodes: Vec<serde_json::Value> = why_f32.iter().map(|(&i, w)| serde_json::json!({"node": graph.node(i).name, "op": graph.node(i).op_type, "why": w})).collect();
         Ok(serde_json::json!({
             "activations": o.activations,

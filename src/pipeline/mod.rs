@@ -1,124 +1,24 @@
-//! Pass pipelines: YAML recipes naming passes and their options, run in order.
+//! Pass pipelines: YAML recipes naming passes and their options, checked whole, then run in
+//! order.
 //!
-//! A pass is a unit with a contract: it takes a model, rewrites it, and reports what it did
-//! (`serde_json::Value`, pass-specific). The runner adds what every pass report carries:
-//! time taken and node/parameter/MAC counts before and after.
+//! A pass (`passes::Pass`) takes a model, rewrites it, and reports what it did
+//! (`serde_json::Value`, pass-specific). The runner adds what every pass report carries: time
+//! taken, node/parameter/MAC counts before and after, and the pass's warnings.
 
+pub mod preview;
 pub mod recipe;
 
-use crate::inspect::inspect;
+use crate::inspect::{counts, Counts};
 use crate::onnx::proto::ModelProto;
 use anyhow::{Context, Result};
 use serde::Serialize;
-use std::path::PathBuf;
 use std::time::Instant;
 
+pub use crate::passes::{is_quality_failure, Capability, Pass, PassContext, QualityFailure, Teacher};
 pub use recipe::{PassSpec, Recipe};
 
-/// What passes may need from the command line.
-#[derive(Default, Clone, Debug)]
-pub struct PassContext {
-    /// Camera blur map (`--psf`).
-    pub psf: Option<PathBuf>,
-    /// Calibration frames (`--calib`).
-    pub calib: Option<PathBuf>,
-    /// Outputs `strip-recon` keeps (`--keep-outputs`), overriding recognition.
-    pub keep_outputs: Option<Vec<String>>,
-    /// What the deployment needs (`--scene`): read by the scene passes.
-    pub scene: Option<crate::scene::Scene>,
-    /// The model before the last structural change: `prune` leaves the unpruned model here,
-    /// `recover` distills the pruned one from it.
-    pub teacher: std::cell::RefCell<Option<Teacher>>,
-}
-
-/// A model before pruning or scene specialization and, for every value that lost channels,
-/// the positions it kept; with a scene ROI, the window of the teacher's frame the student sees.
-#[derive(Clone, Debug)]
-pub struct Teacher {
-    pub model: ModelProto,
-    pub kept: std::collections::HashMap<String, Vec<usize>>,
-    pub window: Option<crate::scene::Roi>,
-    /// The initializers `crop-roi` fitted (halos, pool corrections): what `recover` trains with
-    /// `train: estimates`.
-    pub estimates: Vec<String>,
-}
-
-impl Teacher {
-    /// Records a further channel cut: `kept` indexes the current model's channels, which
-    /// index the teacher's through the earlier cut.
-    pub fn compose(&mut self, kept: &std::collections::HashMap<String, Vec<usize>>) {
-        for (v, ks) in kept {
-            let through = match self.kept.get(v) {
-                Some(earlier) => ks.iter().map(|&k| earlier[k]).collect(),
-                None => ks.clone(),
-            };
-            self.kept.insert(v.clone(), through);
-        }
-    }
-}
-
-/// A lossy pass's result past its hard limit: the artifact would be broken, not merely less
-/// accurate. The command exits 1 (a quality failure, not bad input) and writes no artifact.
-#[derive(Debug)]
-pub struct QualityFailure(pub String);
-
-impl std::fmt::Display for QualityFailure {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(&self.0)
-    }
-}
-
-impl std::error::Error for QualityFailure {}
-
-/// Whether `e` is, or was caused by, a [`QualityFailure`].
-pub fn is_quality_failure(e: &anyhow::Error) -> bool {
-    e.chain().any(|c| c.is::<QualityFailure>())
-}
-
-/// What a pass needs from the passes before it (or the input model), or provides to those after.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Capability {
-    /// The model before a structural change (`prune`, or a scene pass), to distill from.
-    Teacher,
-    /// A detection head split per stride (`rknn-legalize`), or an input model that has one.
-    SplitHead,
-}
-
-impl Capability {
-    /// What a recipe does to provide it, for the error that names a missing one.
-    fn remedy(self) -> &'static str {
-        match self {
-            Capability::Teacher => "put prune (or a scene pass, through --scene) before it",
-            Capability::SplitHead => "put rknn-legalize before it",
-        }
-    }
-}
-
-pub trait Pass {
-    fn name(&self) -> &'static str;
-    /// The options' ranges, checked when the recipe loads, before any pass runs.
-    fn check(&self) -> Result<()> {
-        Ok(())
-    }
-    /// What must come before it (from an earlier pass, or the input model).
-    fn needs(&self) -> Vec<Capability> {
-        Vec::new()
-    }
-    fn provides(&self) -> Vec<Capability> {
-        Vec::new()
-    }
-    /// Checks what the pass will need of the input model and the command line (`--psf`),
-    /// before any pass runs.
-    fn preflight(&self, _input: &ModelProto, _cx: &PassContext) -> Result<()> {
-        Ok(())
-    }
-    /// Rewrites `model`; returns the pass's own report.
-    fn run(&self, model: &mut ModelProto, cx: &PassContext) -> Result<serde_json::Value>;
-}
-
 pub fn build_pass(spec: &PassSpec) -> Result<Box<dyn Pass>> {
-    let built = crate::passes::build(spec)?;
+    let built = crate::passes::build(&spec.name, &spec.options)?;
     built.pass.check()?;
     Ok(built.pass)
 }
@@ -128,7 +28,7 @@ pub fn build_pass(spec: &PassSpec) -> Result<Box<dyn Pass>> {
 pub fn resolve(recipe: &Recipe) -> Result<Recipe> {
     let mut out = recipe.clone();
     for p in &mut out.passes {
-        p.options = crate::passes::build(p).with_context(|| format!("pass {}", p.name))?.options;
+        p.options = crate::passes::build(&p.name, &p.options).with_context(|| format!("pass {}", p.name))?.options;
     }
     Ok(out)
 }
@@ -164,17 +64,6 @@ pub fn check(recipe: &Recipe, input: &ModelProto, cx: &PassContext) -> Result<()
     Ok(())
 }
 
-#[derive(Serialize, Clone, Copy)]
-pub struct Counts {
-    pub nodes: usize,
-    pub params: u64,
-    pub macs: u64,
-}
-
-pub fn counts(model: &ModelProto) -> Result<Counts> {
-    let r = inspect(model)?;
-    Ok(Counts { nodes: r.nodes, params: r.params.total, macs: r.macs.total })
-}
 
 #[derive(Serialize)]
 pub struct PassReport {
@@ -183,40 +72,26 @@ pub struct PassReport {
     pub before: Counts,
     pub after: Counts,
     pub details: serde_json::Value,
+    /// What the pass warned of ([`PassContext::warn`]), each as "pass: what".
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 /// Runs every pass of `recipe` on `model` in order.
-pub fn run(recipe: &Recipe, model: &mut ModelProto, cx: &PassContext) -> Result<Vec<PassReport>> {
+pub fn run(recipe: &Recipe, model: &mut ModelProto, cx: &mut PassContext) -> Result<Vec<PassReport>> {
     let passes: Vec<(Box<dyn Pass>, &PassSpec)> = recipe.passes.iter().map(|s| Ok((build_pass(s).with_context(|| format!("pass {}", s.name))?, s))).collect::<Result<_>>()?;
     let mut reports = Vec::new();
     let mut before = counts(model)?;
     for (pass, spec) in passes {
         let t = Instant::now();
+        cx.pass = pass.name();
+        let warned = cx.warnings.len();
         let details = pass.run(model, cx).with_context(|| format!("pass {}", spec.name))?;
         let millis = t.elapsed().as_secs_f64() * 1e3;
         let after = counts(model).with_context(|| format!("after pass {}", spec.name))?;
-        reports.push(PassReport { pass: pass.name().to_string(), millis, before, after, details });
+        reports.push(PassReport { pass: pass.name().to_string(), millis, before, after, details, warnings: cx.warnings[warned..].to_vec() });
         before = after;
     }
     Ok(reports)
 }
 
-/// Seconds per phase of a pass, for its report (where the time goes is a deployment concern).
-pub struct Clock {
-    last: Instant,
-    pub laps: std::collections::BTreeMap<&'static str, f64>,
-}
-
-impl Default for Clock {
-    fn default() -> Self {
-        Clock { last: Instant::now(), laps: Default::default() }
-    }
-}
-
-impl Clock {
-    /// Books the time since the last lap (or the start) to `phase`, adding to earlier laps of it.
-    pub fn lap(&mut self, phase: &'static str) {
-        *self.laps.entry(phase).or_default() += self.last.elapsed().as_secs_f64();
-        self.last = Instant::now();
-    }
-}

@@ -266,7 +266,7 @@ pub fn compensate(original: &ModelProto, pruned: &mut ModelProto, kept: &HashMap
         v
     };
     let floats = |values: &[String]| -> usize { values.iter().map(|v| inf.shape(v).map_or(0, |s| s.iter().product())).sum::<usize>() * feeds.len() };
-    let mut clock = crate::pipeline::Clock::default();
+    let mut clock = crate::clock::Clock::default();
     let mut at = 0;
     while at < stages.len() {
         // The original does not change: one run per frame serves every depth of a batch, as
@@ -341,7 +341,7 @@ fn truncated(model: &ModelProto, values: &[String]) -> Result<ModelProto> {
     let mut m = expose_outputs(model, values);
     let g = m.graph.as_mut().expect("checked");
     g.output.retain(|o| values.contains(&o.name));
-    crate::passes::dce::eliminate(g)?;
+    crate::ir::rewrite::dce::eliminate(g)?;
     Ok(m)
 }
 

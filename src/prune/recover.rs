@@ -32,7 +32,7 @@ pub struct Options {
     /// `cuda`, `cpu`, or empty for CUDA when torch sees a GPU.
     pub device: String,
     /// The teacher's frames are full frames; the student sees this window of them.
-    pub window: Option<crate::scene::Roi>,
+    pub window: Option<crate::frames::Roi>,
     /// The initializers that train (any float initializer, whatever reads it); None: every
     /// Conv weight and bias.
     pub trainable: Option<Vec<String>>,

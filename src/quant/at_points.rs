@@ -10,7 +10,8 @@
 
 use super::params::{quantize_bias, ActivationType, QParams};
 use super::qdq::{add_qdq, dequantize_per_channel, node};
-use crate::onnx::edit::{fresh_name, set_initializer, sort_topologically};
+use crate::onnx::edit::{fresh_name, set_initializer};
+use crate::ir::rewrite::topo::sort_topologically;
 use crate::onnx::proto::{GraphProto, ModelProto};
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
 use crate::tensor::{Tensor, TensorData};

@@ -13,7 +13,8 @@ use crate::analysis::head;
 use crate::detect::decode::channel_groups;
 use crate::ir::{infer, Graph};
 use crate::metrics::tensor_error::{ErrorSums, TensorError};
-use crate::onnx::edit::{expose_outputs, fresh_name, set_initializer, sort_topologically};
+use crate::onnx::edit::{expose_outputs, fresh_name, set_initializer};
+use crate::ir::rewrite::topo::sort_topologically;
 use crate::onnx::proto::ModelProto;
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
 use crate::runtime::ort_runtime::OrtRuntime;
@@ -186,7 +187,7 @@ pub fn output_errors_at(reference: &ModelProto, candidate: &ModelProto, feeds: &
             sums.entry((k, None)).or_default().add(x.iter().copied(), y.iter().copied());
             if head.output.as_deref() == Some(name.as_str()) {
                 for (group, range) in channel_groups(head.kind, &a.shape) {
-                    let (x, y) = (crate::verify::select_channels(head.kind, a, range.clone()), crate::verify::select_channels(head.kind, b, range));
+                    let (x, y) = (crate::metrics::validation::select_channels(head.kind, a, range.clone()), crate::metrics::validation::select_channels(head.kind, b, range));
                     sums.entry((k, Some(group))).or_default().add(x.into_iter(), y.into_iter());
                 }
             }

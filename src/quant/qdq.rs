@@ -6,7 +6,8 @@
 use super::params::{quantize_bias, quantize_weights, ActivationType, QParams, QuantizedWeights};
 use super::plan::Plan;
 use crate::ir::Graph;
-use crate::onnx::edit::{fresh_name, set_initializer, sort_topologically};
+use crate::onnx::edit::{fresh_name, set_initializer};
+use crate::ir::rewrite::topo::sort_topologically;
 use crate::onnx::proto::{AttributeProto, GraphProto, ModelProto, NodeProto};
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
 use crate::tensor::{Tensor, TensorData};

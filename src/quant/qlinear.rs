@@ -6,7 +6,8 @@
 
 use crate::ir::Graph;
 use crate::onnx::attr;
-use crate::onnx::edit::{remove_nodes, sort_topologically};
+use crate::onnx::edit::remove_nodes;
+use crate::ir::rewrite::topo::sort_topologically;
 use crate::onnx::proto::{GraphProto, NodeProto};
 use anyhow::Result;
 use std::collections::HashSet;
@@ -56,6 +57,6 @@ pub fn to_qlinear_conv(g: &mut GraphProto) -> Result<usize> {
     }
     remove_nodes(g, &dead);
     sort_topologically(g)?;
-    crate::passes::dce::eliminate(g)?;
+    crate::ir::rewrite::dce::eliminate(g)?;
     Ok(count)
 }

@@ -23,7 +23,7 @@ use crate::runtime::ort_profile::profile;
 use crate::runtime::ort_runtime::OrtRuntime;
 use crate::runtime::Runtime;
 use crate::tensor::Tensor;
-use crate::verify::latency::interleaved;
+use crate::runtime::latency::interleaved;
 use anyhow::Result;
 use ort::session::builder::GraphOptimizationLevel;
 use std::collections::HashSet;

@@ -51,7 +51,7 @@ fn executor(threads: usize) -> Executor {
 /// split into bands (`split-wide-depthwise`; the same sums in another order), since past
 /// 128 taps tract runs them as scalar loops.
 pub fn tract_ready(model: &ModelProto) -> Result<std::borrow::Cow<'_, ModelProto>> {
-    use crate::passes::split_wide_depthwise::{any_to_split, split_all};
+    use crate::ir::rewrite::split_depthwise::{any_to_split, split_all};
     let graph = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
     if !any_to_split(graph) {
         return Ok(std::borrow::Cow::Borrowed(model));

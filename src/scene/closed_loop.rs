@@ -25,7 +25,8 @@ use super::halo::{self, Mode, Plan};
 use super::pool::{PoolReport, Pools};
 use super::Roi;
 use crate::ir::Graph;
-use crate::onnx::edit::{expose_outputs, sort_topologically};
+use crate::onnx::edit::expose_outputs;
+use crate::ir::rewrite::topo::sort_topologically;
 use crate::onnx::proto::{GraphProto, ModelProto};
 use crate::runtime::ort_runtime::OrtRuntime;
 use crate::tensor::Tensor;
@@ -129,7 +130,7 @@ fn exposing(cropped: &ModelProto, names: &[String]) -> Result<ModelProto> {
     let g = m.graph.as_mut().ok_or_else(|| anyhow!("the model has no graph"))?;
     settle(g)?;
     g.output = names.iter().map(|n| g.value_info.iter().find(|v| &v.name == n).cloned().unwrap_or_else(|| crate::onnx::proto::ValueInfoProto { name: n.clone(), ..Default::default() })).collect();
-    crate::passes::dce::eliminate(g)?;
+    crate::ir::rewrite::dce::eliminate(g)?;
     Ok(m)
 }
 
@@ -137,7 +138,7 @@ fn exposing(cropped: &ModelProto, names: &[String]) -> Result<ModelProto> {
 fn settle(g: &mut GraphProto) -> Result<()> {
     sort_topologically(g)?;
     g.value_info.clear();
-    crate::passes::fold_constants::write_value_info(g)?;
+    crate::ir::rewrite::value_info::write_value_info(g)?;
     Ok(())
 }
 

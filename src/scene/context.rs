@@ -14,7 +14,7 @@ use crate::metrics::coco_map::coco_map;
 use crate::onnx::proto::ModelProto;
 use crate::runtime::{self, Engine};
 use crate::tensor::Tensor;
-use crate::verify::{agreement_truth, detections};
+use crate::metrics::validation::{agreement_truth, detections};
 use anyhow::{anyhow, bail, Result};
 use serde::Serialize;
 use std::path::Path;

@@ -105,7 +105,7 @@ pub fn apply(g: &mut GraphProto, cut: &Cut) -> Result<CutReport> {
             report.concats += 1;
         }
     }
-    crate::passes::dce::eliminate(g)?;
+    crate::ir::rewrite::dce::eliminate(g)?;
 
     // 2. The input becomes the window.
     set_dims(g, &input, &[1, -1, r.h as i64, r.w as i64]);
@@ -214,7 +214,7 @@ fn crop_constant(t: &Tensor, out: &[usize], [fh, fw]: [usize; 2], levels: &[Leve
 pub fn follow_shapes(g: &mut GraphProto, old: &Inferred) -> Result<usize> {
     let n = retarget_shapes(g, old)?;
     // The old targets are read by nobody now.
-    crate::passes::dce::eliminate(g)?;
+    crate::ir::rewrite::dce::eliminate(g)?;
     refresh_declared_shapes(g)?;
     Ok(n)
 }
@@ -328,7 +328,7 @@ fn refresh_declared_shapes(g: &mut GraphProto) -> Result<()> {
             s.dim = shape.iter().map(|&d| crate::onnx::proto::Dimension { value: Some(DimensionValue::DimValue(d as i64)), ..Default::default() }).collect();
         }
     }
-    crate::passes::fold_constants::write_value_info(g)?;
+    crate::ir::rewrite::value_info::write_value_info(g)?;
     Ok(())
 }
 

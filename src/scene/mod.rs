@@ -16,12 +16,13 @@ pub mod context;
 pub mod geometry;
 pub mod halo;
 pub mod pool;
-pub mod preview;
 
 use crate::onnx::proto::{ModelProto, StringStringEntryProto};
 use anyhow::{anyhow, bail, Context, Result};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+
+pub use crate::frames::Roi;
 
 /// A class named by the user: its name in `names`, or its index.
 #[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
@@ -29,35 +30,6 @@ use std::path::Path;
 pub enum ClassRef {
     Index(usize),
     Name(String),
-}
-
-#[derive(Clone, Copy, Debug, Deserialize, Serialize, PartialEq, Eq)]
-#[serde(deny_unknown_fields)]
-pub struct Roi {
-    pub x: usize,
-    pub y: usize,
-    pub w: usize,
-    pub h: usize,
-}
-
-impl Roi {
-    /// Whether a box (x1, y1, x2, y2) lies inside, at least `margin` pixels from every edge.
-    pub fn contains(&self, b: &[f32; 4], margin: f32) -> bool {
-        let (x0, y0) = (self.x as f32 + margin, self.y as f32 + margin);
-        let (x1, y1) = ((self.x + self.w) as f32 - margin, (self.y + self.h) as f32 - margin);
-        b[0] >= x0 && b[1] >= y0 && b[2] <= x1 && b[3] <= y1
-    }
-
-    /// The ROI of a [.., H, W] image (None when the image does not hold it).
-    pub fn crop(&self, t: &crate::tensor::Tensor) -> Option<crate::tensor::Tensor> {
-        let n = t.shape.len();
-        if n < 2 {
-            return None;
-        }
-        let rows: Vec<usize> = (self.y..self.y + self.h).collect();
-        let cols: Vec<usize> = (self.x..self.x + self.w).collect();
-        t.select(n - 2, &rows).and_then(|c| c.select(n - 1, &cols))
-    }
 }
 
 /// The scene file.

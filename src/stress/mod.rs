@@ -8,7 +8,6 @@
 //! FP16 candidates what each layer saw (`probes`). Written: stress.json, stress.md and a
 //! heatmap (SVG, PNG); a gate turns it into pass/fail.
 
-pub mod conditions;
 pub mod gate;
 pub mod probes;
 pub mod render;
@@ -23,9 +22,10 @@ use crate::runtime::ort_runtime::OrtRuntime;
 use crate::runtime::Runtime;
 use crate::tensor::Tensor;
 use crate::verify::gate::Check;
-use crate::verify::{agreement_truth, detections, feeds, side, Side};
+use crate::metrics::validation::{agreement_truth, detections};
+use crate::verify::{feeds, side, Side};
 use anyhow::{anyhow, bail, Result};
-use conditions::Condition;
+use crate::optics::conditions::{self, Condition};
 use indicatif::{ProgressBar, ProgressStyle};
 use ort::session::builder::GraphOptimizationLevel;
 use probes::{LayerStats, Precision, Probe};
@@ -240,7 +240,7 @@ pub fn stress(req: &StressRequest) -> Result<StressReport> {
                     worst_rel_l2,
                     agreement: map.as_ref().map(|m| m.map50_95),
                     agreement50: map.as_ref().map(|m| m.map50),
-                    boxes: tally.dets.iter().flatten().filter(|d| d.score >= crate::verify::AGREEMENT_CONF).count(),
+                    boxes: tally.dets.iter().flatten().filter(|d| d.score >= crate::metrics::validation::AGREEMENT_CONF).count(),
                     nonfinite: tally.nonfinite,
                     extra_nonfinite: tally.extra_nonfinite,
                     values: tally.values,
@@ -314,7 +314,7 @@ impl Tally {
         let (fr, fc) = finite(&r, &c);
         self.groups.entry("all").or_default().add(fr.into_iter(), fc.into_iter());
         for (g, range) in decode::channel_groups(kind, &reference.shape) {
-            let (a, b) = (crate::verify::select_channels(kind, reference, range.clone()), crate::verify::select_channels(kind, candidate, range));
+            let (a, b) = (crate::metrics::validation::select_channels(kind, reference, range.clone()), crate::metrics::validation::select_channels(kind, candidate, range));
             let (fa, fb) = finite(&a, &b);
             self.groups.entry(g).or_default().add(fa.into_iter(), fb.into_iter());
         }

@@ -115,7 +115,7 @@ pub struct RknnQuantization {
     /// Layers to keep in FP16 (the rknn-hybrid pass's choice; empty: all INT8). Each span
     /// from `input` to `output` becomes one of the toolkit's custom hybrid spans.
     #[serde(default)]
-    pub fp16_layers: Vec<crate::passes::rknn_hybrid::Fp16Layer>,
+    pub fp16_layers: Vec<crate::targets::rknn_fp16::Fp16Layer>,
     pub dataset: String,
     pub dataset_frames: usize,
     pub dataset_source: String,
@@ -160,7 +160,7 @@ pub fn write(dir: &Path, model: &ModelProto, calib: Option<&Path>) -> Result<Rkn
             quantized_method: "channel".into(),
             auto_hybrid: false,
             auto_hybrid_cos_thresh: default_hybrid_cosine(),
-            fp16_layers: crate::passes::rknn_hybrid::stored(model)?,
+            fp16_layers: crate::targets::rknn_fp16::stored(model)?,
             dataset: "dataset.txt".into(),
             dataset_frames: frames.frames.len(),
             dataset_source: frames.source,

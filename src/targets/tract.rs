@@ -29,7 +29,7 @@ use crate::runtime::ort_runtime::OrtRuntime;
 use crate::runtime::tract_runtime::{typed_model, TractRuntime};
 use crate::runtime::Runtime;
 use crate::tensor::Tensor;
-use crate::verify::latency::interleaved;
+use crate::runtime::latency::interleaved;
 use anyhow::{anyhow, bail, Result};
 use std::path::Path;
 use std::time::Instant;
@@ -129,7 +129,7 @@ pub fn write(dir: &Path, model: ModelProto, float: Option<ModelProto>, threads: 
     };
     let for_ort = model.clone();
     let mut model = model;
-    let (split, left) = crate::passes::split_wide_depthwise::split_all(model.graph.as_mut().ok_or_else(|| anyhow!("model has no graph"))?)?;
+    let (split, left) = crate::ir::rewrite::split_depthwise::split_all(model.graph.as_mut().ok_or_else(|| anyhow!("model has no graph"))?)?;
     let conv_tiles = match reuse {
         Some(r) => super::tract_tiles::apply(&mut model, &r.tiled)?,
         None => super::tract_tiles::choose(&mut model, threads)?,
@@ -203,7 +203,7 @@ pub fn write(dir: &Path, model: ModelProto, float: Option<ModelProto>, threads: 
 }
 
 /// tract's median latency on one thread and on `all` (the target's own runtime, on every
-/// thread it was given), interleaved, every run after the pause `verify::latency::interleaved`
+/// thread it was given), interleaved, every run after the pause `runtime::latency::interleaved`
 /// takes: frames from a camera come with gaps, and after one tract's rayon workers have gone
 /// to sleep and each parallel operator pays to wake them.
 /// Measured on the trained tiny v5 at 256x192, 2 cores: 10.4 ms on 2 threads back to back,

@@ -12,10 +12,10 @@
 
 use crate::onnx::edit::{initializer, tensor_value_info};
 use crate::onnx::proto::{GraphProto, ModelProto, TensorTypeProto, TypeProto, TypeValue, ValueInfoProto};
-use crate::passes::tile_conv_columns::{candidates, tile, Plan};
+use crate::ir::rewrite::tile_columns::{candidates, tile, Plan};
 use crate::runtime::tract_runtime::TractRuntime;
 use crate::tensor::{DType, Tensor};
-use crate::verify::latency::interleaved;
+use crate::runtime::latency::interleaved;
 use anyhow::{anyhow, Result};
 
 /// Timed runs of each form (interleaved; the median decides).

@@ -8,29 +8,22 @@
 
 pub mod gate;
 pub mod junit;
-pub mod latency;
 
 use crate::analysis::head::{Head, HeadKind};
+use crate::metrics::validation::{agreement_truth, detections, select_channels, AGREEMENT_CONF};
 use crate::deploy::input::ModelInput;
-use crate::deploy::{default_iou, DEFAULT_MAX_DET, EVAL_CONF};
-use crate::detect::{decode, nms::nms, Detection};
+use crate::detect::{decode, Detection};
 use crate::frames::{self, Frame};
 use crate::metrics::coco_map::{coco_map, MapResult, Truth};
 use crate::metrics::tensor_error::{compare, TensorError};
 use crate::onnx::proto::ModelProto;
-use crate::runtime::{self, Engine, Runtime};
+use crate::runtime::{self, latency, Engine, Runtime};
 use crate::scene::compare::SceneView;
 use crate::tensor::Tensor;
 use anyhow::{anyhow, bail, Result};
 use gate::{Check, Gate};
 use serde::Serialize;
 use std::path::PathBuf;
-
-/// A reference detection counts as an object to agree on from this score (a deployment's usual cut).
-pub(crate) const AGREEMENT_CONF: f32 = 0.25;
-/// COCO scores at most this many detections per frame and class; truths are capped alike so
-/// that a candidate identical to the reference scores 1.
-const TRUTH_PER_CLASS: usize = 100;
 
 pub struct VerifyRequest {
     pub reference: PathBuf,
@@ -130,12 +123,6 @@ pub(crate) fn feeds(side: &Side, frame: &Frame, psf: Option<&Tensor>) -> Result<
     Ok(v)
 }
 
-pub(crate) fn detections(head: &Head, outputs: &[(String, Tensor)]) -> Result<Vec<Detection>> {
-    let name = head.output.as_deref().ok_or_else(|| anyhow!("no detection output"))?;
-    let t = &outputs.iter().find(|(n, _)| n == name).ok_or_else(|| anyhow!("output {name} missing"))?.1;
-    // Validation's decode: what `run` (deploy) computes mAP from too.
-    Ok(nms(decode::candidates(head.kind, t, EVAL_CONF)?, default_iou(head.kind), DEFAULT_MAX_DET))
-}
 
 pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
     // Without timed runs a latency gate is unmeasured: refused, unless the command says it may
@@ -289,44 +276,7 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
     })
 }
 
-/// Values of channels `range` of a detection tensor ([1,N,C] for v5, [1,C,N] for v8).
-pub(crate) fn select_channels(kind: HeadKind, t: &Tensor, range: std::ops::Range<usize>) -> Vec<f64> {
-    let v = t.data.to_f64();
-    match kind {
-        HeadKind::Yolov5Anchor => v.chunks_exact(t.shape[2]).flat_map(|row| row[range.clone()].to_vec()).collect(),
-        _ => v[range.start * t.shape[2]..range.end * t.shape[2]].to_vec(),
-    }
-}
 
-/// The reference's detections taken as truth when a candidate is scored against them:
-/// those scoring at least AGREEMENT_CONF (capped per class), and how they were chosen.
-pub(crate) fn agreement_truth(reference: &[Vec<Detection>], classes: usize) -> (Vec<Vec<Truth>>, String) {
-    let confident = reference.iter().any(|ds| ds.iter().any(|d| d.score >= AGREEMENT_CONF));
-    // An untrained (or very unsure) reference has no confident boxes: then every box it keeps
-    // after NMS is an object to agree on, and precision and recall say how many the candidate
-    // reproduces and how many it adds.
-    let floor = if confident { AGREEMENT_CONF } else { EVAL_CONF };
-    let how = if confident {
-        format!("reference detections with score >= {AGREEMENT_CONF}")
-    } else {
-        format!("no reference score reaches {AGREEMENT_CONF}: all its detections after NMS")
-    };
-    let truth = reference
-        .iter()
-        .map(|ds| {
-            let mut per_class = vec![0usize; classes];
-            ds.iter() // sorted best first by NMS
-                .filter(|d| d.score >= floor && d.class < classes)
-                .filter(|d| {
-                    per_class[d.class] += 1;
-                    per_class[d.class] <= TRUTH_PER_CLASS
-                })
-                .map(|d| Truth { class: d.class, bbox: d.bbox })
-                .collect()
-        })
-        .collect();
-    (truth, how)
-}
 
 fn detection_report(head: &Head, frames: &[Frame], reference: &[Vec<Detection>], candidate: &[Vec<Detection>], tract: &[Vec<Detection>]) -> DetectionReport {
     let classes = head.classes.unwrap_or(1).max(1);

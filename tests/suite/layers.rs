@@ -1,14 +1,15 @@
 //! Dependencies point down: each top-level module of `src/` has a layer, and a module imports
-//! only from its own layer or below. The imports that still point up are listed in `UPWARD`
-//! to be removed (issue 47); the test fails on any new one, and on a listed one that is gone
-//! (so the list only shrinks), and on a module that has no layer.
+//! only from its own layer or below; no two modules import each other, directly or through
+//! others (a circle within a layer is a circle too); `passes` is imported only by the
+//! pipeline and the commands. The test fails on an import that breaks any of these, and on a
+//! module that has no layer.
 
 use crate::common::repo;
 use std::collections::{BTreeMap, BTreeSet};
 
 /// Lowest first. Modules in one layer may import each other.
 const LAYERS: &[&[&str]] = &[
-    &["tensor", "fsutil", "warn", "canvas"],
+    &["tensor", "fsutil", "warn", "canvas", "clock"],
     &["onnx", "ir"],
     &["analysis", "metrics", "detect", "optics", "inspect"],
     &["runtime", "frames", "dataset", "calib_frames", "pyenv"],
@@ -20,23 +21,6 @@ const LAYERS: &[&[&str]] = &[
     &["deploy", "verify", "manifest"],
     // commands
     &["compile", "rebuild", "run", "ship", "bench", "stress", "cli", "fuzz_targets", "reference"],
-];
-
-/// Imports that point up today, (from, to).
-const UPWARD: &[(&str, &str)] = &[
-    ("runtime", "passes"),
-    ("prune", "passes"),
-    ("prune", "pipeline"),
-    ("quant", "passes"),
-    ("quant", "verify"),
-    ("scene", "passes"),
-    ("scene", "pipeline"),
-    ("scene", "verify"),
-    ("targets", "passes"),
-    ("targets", "verify"),
-    ("passes", "pipeline"),
-    ("passes", "stress"),
-    ("passes", "verify"),
 ];
 
 /// Top-level module → the top-level modules its files name through `crate::`.
@@ -76,7 +60,6 @@ fn dependencies_point_down() {
     let layer = |m: &str| LAYERS.iter().position(|l| l.contains(&m));
     let edges = imports();
     let mut problems = Vec::new();
-    let mut upward = BTreeSet::new();
     for (from, tos) in &edges {
         let Some(lf) = layer(from) else {
             problems.push(format!("src/{from} has no layer: add it to LAYERS"));
@@ -85,21 +68,62 @@ fn dependencies_point_down() {
         for to in tos {
             let Some(lt) = layer(to) else { continue };
             if lt > lf {
-                upward.insert((from.as_str(), to.as_str()));
-                if !UPWARD.contains(&(from.as_str(), to.as_str())) {
-                    problems.push(format!("{from} (layer {lf}) imports {to} (layer {lt}): a new import that points up"));
-                }
+                problems.push(format!("{from} (layer {lf}) imports {to} (layer {lt}): an import that points up"));
+            }
+            if to == "passes" && lf < layer("pipeline").unwrap() {
+                problems.push(format!("{from} imports passes: only the pipeline and the commands may"));
             }
         }
     }
-    for (from, to) in UPWARD {
-        if !upward.contains(&(*from, *to)) {
-            problems.push(format!("{from} no longer imports {to}: remove it from UPWARD"));
-        }
+    for circle in circles(&edges) {
+        problems.push(format!("an import circle: {}", circle.join(" -> ")));
     }
     assert!(problems.is_empty(), "{}", problems.join("\n"));
     // The modules the map names exist: a stale name would hide a module that lost its layer.
     for m in LAYERS.iter().flat_map(|l| l.iter()) {
         assert!(edges.contains_key(*m), "LAYERS names src/{m}, which does not exist");
     }
+}
+
+/// Every module that reaches itself through imports, as the path back to it (one per module).
+fn circles(edges: &BTreeMap<String, BTreeSet<String>>) -> Vec<Vec<String>> {
+    let mut found = Vec::new();
+    for start in edges.keys() {
+        // Breadth first from `start`, remembering each module's predecessor.
+        let mut before: BTreeMap<&str, &str> = BTreeMap::new();
+        let mut queue = std::collections::VecDeque::from([start.as_str()]);
+        while let Some(m) = queue.pop_front() {
+            for next in edges.get(m).into_iter().flatten() {
+                if next == start {
+                    let mut path = vec![start.clone(), m.to_string()];
+                    let mut at = m;
+                    while let Some(p) = before.get(at) {
+                        path.insert(1, p.to_string());
+                        at = p;
+                    }
+                    path.dedup();
+                    path.push(start.clone());
+                    found.push(path);
+                    queue.clear();
+                    break;
+                }
+                if !before.contains_key(next.as_str()) && next != start {
+                    before.insert(next, m);
+                    queue.push_back(next);
+                }
+            }
+        }
+    }
+    found
+}
+
+#[test]
+fn a_circle_is_found() {
+    let mut edges: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+    for (a, b) in [("onnx", "ir"), ("ir", "tensor"), ("tensor", "onnx"), ("detect", "metrics")] {
+        edges.entry(a.into()).or_default().insert(b.into());
+    }
+    let c = circles(&edges);
+    assert_eq!(c.len(), 3, "{c:?}");
+    assert!(c.contains(&vec!["onnx".to_string(), "ir".into(), "tensor".into(), "onnx".into()]), "{c:?}");
 }

@@ -52,7 +52,7 @@ fn conv_bn(eps: f32) -> ModelProto {
 
 fn run_pipeline(model: &mut ModelProto, passes: &str) -> Vec<pipeline::PassReport> {
     let recipe = Recipe::parse(&format!("name: t\npasses: [{passes}]\n")).unwrap();
-    pipeline::run(&recipe, model, &PassContext::default()).unwrap()
+    pipeline::run(&recipe, model, &mut PassContext::default()).unwrap()
 }
 
 fn output(model: &ModelProto) -> Tensor {

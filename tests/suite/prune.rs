@@ -135,7 +135,7 @@ fn random_model(seed: u64, kinds: &[u8]) -> ModelProto {
 
 fn prune(model: &mut ModelProto, ratio: f64, round_to: usize, compensate: &str) -> serde_json::Value {
     let recipe = Recipe::parse(&format!("name: t\npasses:\n  - prune: {{ratio: {ratio}, round_to: {round_to}, compensate: {compensate}, calib_frames: 4}}\n")).unwrap();
-    let reports = run(&recipe, model, &PassContext::default()).unwrap_or_else(|e| panic!("prune failed: {e:#}"));
+    let reports = run(&recipe, model, &mut PassContext::default()).unwrap_or_else(|e| panic!("prune failed: {e:#}"));
     serde_json::to_value(&reports[0].details).unwrap()
 }
 
@@ -171,7 +171,7 @@ fn zero_ratio_is_the_identity_and_bad_ratios_are_refused() {
     let b = runtime::load(Engine::Ort, &same, &feeds, 1).unwrap().run(&feeds).unwrap();
     assert!(a[0].1.bit_identical(&b[0].1));
     let recipe = Recipe::parse("name: t\npasses:\n  - prune: {ratio: 1.0}\n").unwrap();
-    let err = run(&recipe, &mut original.clone(), &PassContext::default()).err().expect("ratio 1 is refused");
+    let err = run(&recipe, &mut original.clone(), &mut PassContext::default()).err().expect("ratio 1 is refused");
     assert!(format!("{err:#}").contains("ratio"), "{err:#}");
 }
 

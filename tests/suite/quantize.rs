@@ -86,7 +86,7 @@ fn relus_fused_exactly(fused: u64, path: &Path) {
         }
     }
     assert!(restored > 0 && restored as u64 <= fused, "{restored} restored of {fused} fused");
-    pdi_compile::onnx::edit::sort_topologically(g2).unwrap();
+    pdi_compile::ir::rewrite::topo::sort_topologically(g2).unwrap();
     let inputs = inputs_for(&fused_model, 5);
     let level = ort::session::builder::GraphOptimizationLevel::Disable;
     let a = OrtRuntime::with_options(&fused_model, level, 1).unwrap().run(&inputs).unwrap();

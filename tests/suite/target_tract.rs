@@ -23,7 +23,7 @@ fn tract_target_writes_a_checked_folder() {
         // The bridge's 15x15 depthwise convolution ships in bands tract's SIMD kernel takes.
         assert!(tract_yaml.contains("depthwise_split") && tract_yaml.contains("/bridge/dw/Conv"), "{tract_yaml}");
         let shipped = common::load(&out.join("model.onnx"));
-        assert!(!pdi_compile::passes::split_wide_depthwise::any_to_split(shipped.graph.as_ref().unwrap()));
+        assert!(!pdi_compile::ir::rewrite::split_depthwise::any_to_split(shipped.graph.as_ref().unwrap()));
         // Each convolution tract would run directly (the encoder's, at 256 columns and more)
         // was timed whole and tiled, and ships tiled exactly where the tiles were faster.
         let yaml: serde_json::Value = yaml_serde::from_str(&tract_yaml).unwrap();

@@ -83,14 +83,25 @@ pub fn eval_set(dir: &Path) -> PathBuf {
 }
 
 /// The first `n` frames of the held-out set's recipe (for tests that need a few frames).
-pub fn eval_frames(dir: &Path, n: usize) -> PathBuf {
-    let psf = dir.join("psf");
-    let r = cli(&["psf", "simulate", "--lens", "calib/lens_single_lwir.yaml", "-o", psf.to_str().unwrap()]);
-    assert_eq!(r.code, 0, "{}", r.stderr);
-    let set = dir.join("eval");
-    let r = cli(&["dataset", set.to_str().unwrap(), "--psf", psf.to_str().unwrap(), "--n", &n.to_string(), "--q", "90", "--seed", "2", "--min-box", "16", "--out-size", "256x192"]);
-    assert_eq!(r.code, 0, "{}", r.stderr);
-    set.join("degraded")
+/// Generated once per test process and shared: the tests only read it (`_dir` is where each
+/// test writes its own files).
+pub fn eval_frames(_dir: &Path, n: usize) -> PathBuf {
+    static ROOT: std::sync::OnceLock<tempfile::TempDir> = std::sync::OnceLock::new();
+    static MADE: std::sync::Mutex<Vec<usize>> = std::sync::Mutex::new(Vec::new());
+    // Under target/tmp: a static is never dropped, so this folder outlives the process there.
+    let root = ROOT.get_or_init(|| tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).unwrap()).path().join(n.to_string());
+    // Held while generating: a second test wanting the same set waits instead of racing.
+    let mut made = MADE.lock().unwrap_or_else(|e| e.into_inner());
+    if !made.contains(&n) {
+        let psf = root.join("psf");
+        let r = cli(&["psf", "simulate", "--lens", "calib/lens_single_lwir.yaml", "-o", psf.to_str().unwrap()]);
+        assert_eq!(r.code, 0, "{}", r.stderr);
+        let set = root.join("eval");
+        let r = cli(&["dataset", set.to_str().unwrap(), "--psf", psf.to_str().unwrap(), "--n", &n.to_string(), "--q", "90", "--seed", "2", "--min-box", "16", "--out-size", "256x192"]);
+        assert_eq!(r.code, 0, "{}", r.stderr);
+        made.push(n);
+    }
+    root.join("eval").join("degraded")
 }
 
 /// The text of the shipped recipe `recipe` (repo-relative) with `from` replaced by `to`;

@@ -1,4 +1,5 @@
-//! `inspect MODEL --scene FILE`: what each key of a scene would remove, before compiling.
+//! `inspect MODEL --scene FILE`: what each key of a scene would remove, before compiling
+//! (here, not in `scene`, because it runs pipelines).
 //!
 //! The model goes through the lossless compile (detect-f32's passes up to `dce`), then each
 //! scene pass alone and all of them together, on copies; the preview lists MACs, parameters
@@ -7,7 +8,7 @@
 //! lossless model's detections inside it depend on what lies outside (`context`), which no
 //! crop sees.
 
-use super::Scene;
+use crate::scene::{context, Scene};
 use crate::onnx::proto::ModelProto;
 use crate::pipeline::{self, counts, PassContext, PassSpec, Recipe};
 use anyhow::Result;
@@ -27,7 +28,7 @@ pub struct Row {
 #[derive(Serialize)]
 pub struct Preview {
     pub rows: Vec<Row>,
-    pub context: Option<super::context::ContextDependence>,
+    pub context: Option<context::ContextDependence>,
 }
 
 const LOSSLESS: &[&str] = &["promote-constants", "strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce"];
@@ -37,7 +38,7 @@ pub fn preview(model: &ModelProto, scene: &Scene, psf: Option<PathBuf>, calib: O
     let options = |n: &str| if n == "crop-roi" { yaml_serde::from_str("{frames: 2}").expect("valid YAML") } else { yaml_serde::Value::Null };
     let recipe = |names: &[&str]| Recipe { name: "scene-preview".into(), description: String::new(), bases: Vec::new(), passes: names.iter().map(|n| PassSpec::new(n, options(n))).collect() };
     let mut base = model.clone();
-    pipeline::run(&recipe(LOSSLESS), &mut base, &PassContext { psf: psf.clone(), calib: calib.clone(), ..Default::default() })?;
+    pipeline::run(&recipe(LOSSLESS), &mut base, &mut PassContext { psf: psf.clone(), calib: calib.clone(), ..Default::default() })?;
     let full = counts(&base)?;
     let mut rows = vec![row("lossless compile", &base, full)?];
     let steps: Vec<(&str, Scene)> = [
@@ -52,17 +53,17 @@ pub fn preview(model: &ModelProto, scene: &Scene, psf: Option<PathBuf>, calib: O
     let mut all = Vec::new();
     for (pass, s) in &steps {
         let mut m = base.clone();
-        pipeline::run(&recipe(&[pass]), &mut m, &PassContext { scene: Some(s.clone()), calib: calib.clone(), ..Default::default() })?;
+        pipeline::run(&recipe(&[pass]), &mut m, &mut PassContext { scene: Some(s.clone()), calib: calib.clone(), ..Default::default() })?;
         rows.push(row(pass, &m, full)?);
         all.push(*pass);
     }
     if all.len() > 1 {
         let mut m = base.clone();
-        pipeline::run(&recipe(&all), &mut m, &PassContext { scene: Some(scene.clone()), calib: calib.clone(), ..Default::default() })?;
+        pipeline::run(&recipe(&all), &mut m, &mut PassContext { scene: Some(scene.clone()), calib: calib.clone(), ..Default::default() })?;
         rows.push(row("all together", &m, full)?);
     }
     let context = match scene.roi {
-        Some(r) => super::context::measure(&base, r, calib.as_deref(), super::context::FRAMES, 0, crate::runtime::all_cores())?,
+        Some(r) => context::measure(&base, r, calib.as_deref(), context::FRAMES, 0, crate::runtime::all_cores())?,
         None => None,
     };
     if scene.roi.is_some() && context.is_none() {
