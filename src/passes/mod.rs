@@ -9,7 +9,8 @@ use anyhow::{anyhow, bail, Result};
 
 /// The registry: one line per pass, `"recipe-name" => module::Type` (a pass with no options)
 /// or `module::Type { options }`. Each line declares the pass's file as a module, lists it in
-/// [`KNOWN`], builds it in [`build`] and hands its source to the reference ([`SOURCES`]).
+/// [`KNOWN`], builds it in [`build`] and hands its source to the reference ([`SOURCES`],
+/// [`FILES`]).
 macro_rules! registry {
     ($($name:literal => $module:ident :: $ty:ident $({ $options:ident })?,)*) => {
         $(pub mod $module;)*
@@ -17,8 +18,11 @@ macro_rules! registry {
         /// Every pass this build knows, by the name recipes use, in the registry's order.
         pub const KNOWN: &[&str] = &[$($name),*];
 
-        /// Each pass's source file, whose doc comments the generated reference prints.
+        /// Each pass's source text, whose doc comments the generated reference prints.
         pub const SOURCES: &[(&str, &str)] = &[$(($name, include_str!(concat!(stringify!($module), ".rs")))),*];
+
+        /// Each pass's file, relative to the repository.
+        pub const FILES: &[(&str, &str)] = &[$(($name, concat!("src/passes/", stringify!($module), ".rs"))),*];
 
         /// The pass a recipe entry names, with its options as they will run.
         pub fn build(name: &str, options: &yaml_serde::Value) -> Result<Built> {

@@ -156,6 +156,9 @@ impl Pass for Prune {
             (Some(target), None) => {
                 let feeds = feeds.get(..o.sensitivity_frames.min(feeds.len())).filter(|f| !f.is_empty()).ok_or_else(|| anyhow!("a pruning target needs calibration frames: {source}"))?;
                 let (ratios, report) = allocate(&original, &analysis, &scores, o, opset, target, feeds)?;
+                if report["met"] == false {
+                    cx.warn(format!("the target {target:?} is out of reach with ratios up to {}; pruned as far as the levels go", LEVELS[LEVELS.len() - 1]));
+                }
                 (Some(ratios), Some(report))
             }
         };
@@ -275,9 +278,6 @@ fn allocate(original: &ModelProto, analysis: &crate::analysis::channels::Channel
         }
         _ => bail!("prune target: give exactly one of macs or latency (a fraction of the unpruned model), e.g. target: {{macs: 0.3}}"),
     };
-    if !met {
-        crate::warn::warn(format!("prune: the target {target:?} is out of reach with ratios up to {}; pruned as far as the levels go", LEVELS[LEVELS.len() - 1]));
-    }
     Ok((ratios, serde_json::json!({ "met": met, "levels": LEVELS, "frames": feeds.len(), "groups": groups })))
 }
 

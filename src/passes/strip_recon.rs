@@ -36,8 +36,8 @@ impl Pass for StripRecon {
                 let graph = Graph::build(g)?;
                 let p = partition::partition(&graph, &infer(&graph));
                 if p.recon_outputs.is_empty() {
-                    crate::warn::warn(format!(
-                        "strip-recon: no output is frame-sized, so the model has no reconstruction output to strip; keeping every output ({}); name them with --keep-outputs to keep fewer",
+                    cx.warn(format!(
+                        "no output is frame-sized, so the model has no reconstruction output to strip; keeping every output ({}); name them with --keep-outputs to keep fewer",
                         p.det_outputs.join(", ")
                     ));
                 }

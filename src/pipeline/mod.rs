@@ -79,16 +79,25 @@ pub struct PassReport {
 
 /// Runs every pass of `recipe` on `model` in order.
 pub fn run(recipe: &Recipe, model: &mut ModelProto, cx: &mut PassContext) -> Result<Vec<PassReport>> {
-    let passes: Vec<(Box<dyn Pass>, &PassSpec)> = recipe.passes.iter().map(|s| Ok((build_pass(s).with_context(|| format!("pass {}", s.name))?, s))).collect::<Result<_>>()?;
+    let passes: Vec<Box<dyn Pass>> = recipe.passes.iter().map(|s| crate::passes::build(&s.name, &s.options).map(|b| b.pass).with_context(|| format!("pass {}", s.name))).collect::<Result<_>>()?;
+    run_passes(passes, model, cx)
+}
+
+/// Runs `passes` on `model` in order, each option-checked before any runs; each report has
+/// the pass's time, the counts before and after, and its warnings.
+pub fn run_passes(passes: Vec<Box<dyn Pass>>, model: &mut ModelProto, cx: &mut PassContext) -> Result<Vec<PassReport>> {
+    for pass in &passes {
+        pass.check().with_context(|| format!("pass {}", pass.name()))?;
+    }
     let mut reports = Vec::new();
     let mut before = counts(model)?;
-    for (pass, spec) in passes {
+    for pass in passes {
         let t = Instant::now();
         cx.pass = pass.name();
         let warned = cx.warnings.len();
-        let details = pass.run(model, cx).with_context(|| format!("pass {}", spec.name))?;
+        let details = pass.run(model, cx).with_context(|| format!("pass {}", pass.name()))?;
         let millis = t.elapsed().as_secs_f64() * 1e3;
-        let after = counts(model).with_context(|| format!("after pass {}", spec.name))?;
+        let after = counts(model).with_context(|| format!("after pass {}", pass.name()))?;
         reports.push(PassReport { pass: pass.name().to_string(), millis, before, after, details, warnings: cx.warnings[warned..].to_vec() });
         before = after;
     }

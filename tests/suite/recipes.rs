@@ -318,3 +318,26 @@ fn composed_recipes_compile_to_the_same_models() {
         assert!(manifest.contains("fold-psf-gates"), "{name}: the manifest records the expanded list: {manifest}");
     }
 }
+
+/// Every shipped recipe reads, names itself after its file, and each of its passes accepts
+/// its options (unknown ones are errors), so a recipe is never first found broken by a user.
+#[test]
+fn every_shipped_recipe_builds() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("passes");
+    let mut seen = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_none_or(|e| e != "yaml") || ["gate.yaml", "stress.yaml"].iter().any(|n| path.ends_with(n)) {
+            continue;
+        }
+        let recipe = pdi_compile::pipeline::Recipe::load(&path).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+        assert_eq!(Some(recipe.name.as_str()), path.file_stem().and_then(|s| s.to_str()), "{}", path.display());
+        for spec in &recipe.passes {
+            if let Err(e) = pdi_compile::pipeline::build_pass(spec) {
+                panic!("{}: pass {}: {e:#}", path.display(), spec.name);
+            }
+        }
+        seen += 1;
+    }
+    assert!(seen >= 18, "only {seen} recipes in {}", dir.display());
+}
