@@ -78,15 +78,21 @@ pub fn torch_python() -> Result<PathBuf> {
 
 /// Runs the torch worker `script` (file name, source; written with its `companions` into
 /// `dir`) with `args`: the JSON events on its stdout go to `on_event`; returns its `done`
-/// event, or fails with the last line of its stderr.
-pub fn run_worker(dir: &Path, script: (&str, &str), companions: &[(&str, &str)], args: &[&std::ffi::OsStr], mut on_event: impl FnMut(&serde_json::Value)) -> Result<serde_json::Value> {
+/// event, or fails with the last line of its stderr. With `ranks` above 1 the worker runs
+/// as one torch.distributed job on this machine, through torchrun's launcher (its rank 0
+/// reports; several nodes: docs/guide/prune.md).
+pub fn run_worker(dir: &Path, script: (&str, &str), companions: &[(&str, &str)], args: &[&std::ffi::OsStr], ranks: usize, mut on_event: impl FnMut(&serde_json::Value)) -> Result<serde_json::Value> {
     use std::io::{BufRead, BufReader};
     use std::process::Stdio;
     for (name, source) in companions.iter().chain(std::iter::once(&script)) {
         std::fs::write(dir.join(name), source)?;
     }
     let python = torch_python()?;
-    let mut child = Command::new(&python)
+    let mut command = Command::new(&python);
+    if ranks > 1 {
+        command.args(["-m", "torch.distributed.run", "--standalone", "--nnodes", "1", "--nproc-per-node"]).arg(ranks.to_string());
+    }
+    let mut child = command
         .arg(dir.join(script.0))
         .args(args)
         .stdout(Stdio::piped())

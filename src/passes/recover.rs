@@ -48,6 +48,11 @@ pub struct Options {
     pub seed: u64,
     /// `cuda` or `cpu`; empty: CUDA when present.
     pub device: String,
+    /// Processes that train together (torchrun, DistributedDataParallel: NCCL on GPUs, gloo
+    /// on the CPU). Each takes an equal share of every batch and the loss is normalized over
+    /// the whole batch, so the weights are one process's up to float summation order; on the
+    /// CPU they share `threads`. `batch` must divide among them.
+    pub devices: usize,
     /// What trains: every Conv weight and bias (`all`), or only the constants `crop-roi`
     /// fitted, its halos and pool corrections (`estimates`), the network's weights fixed.
     pub train: Train,
@@ -83,6 +88,7 @@ impl Options {
         if self.warmup >= self.steps {
             bail!("warmup ({}) must be fewer than steps ({})", self.warmup, self.steps);
         }
+        crate::prune::recover::check_devices("", self.devices, self.batch)?;
         if ![self.box_edges, self.class_foreground].iter().all(|w| *w >= 0.0 && w.is_finite()) {
             bail!("box_edges and class_foreground must be finite and 0 or more");
         }
@@ -92,7 +98,7 @@ impl Options {
 
 impl Default for Options {
     fn default() -> Self {
-        Options { steps: 1000, warmup: 0, minutes: None, threads: 0, lr: 1e-3, frames: 512, batch: 16, seed: 0, device: String::new(), train: Train::All, box_edges: 16.0, class_foreground: 4.0 }
+        Options { steps: 1000, warmup: 0, minutes: None, threads: 0, lr: 1e-3, frames: 512, batch: 16, seed: 0, device: String::new(), devices: 1, train: Train::All, box_edges: 16.0, class_foreground: 4.0 }
     }
 }
 
@@ -140,7 +146,7 @@ impl Pass for Recover {
             Train::All => None,
             Train::Estimates => Some(present(model, &estimates)?),
         };
-        let opts = Distill { steps: o.steps, warmup: o.warmup, minutes: o.minutes, threads: crate::prune::recover::resolve_threads(o.threads), lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone(), window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground };
+        let opts = Distill { steps: o.steps, warmup: o.warmup, minutes: o.minutes, threads: crate::prune::recover::resolve_threads(o.threads), lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone(), devices: o.devices, window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground };
         let outcome = distill(&mut trained, &teacher, &kept, &train.iter().map(image).collect::<Vec<_>>(), &check.iter().map(image).collect::<Vec<_>>(), &opts)?;
         let after = errors(&trained)?;
         let kept = worst_rel_l2(&after) < worst_rel_l2(&before);

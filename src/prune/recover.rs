@@ -31,6 +31,8 @@ pub struct Options {
     pub seed: u64,
     /// `cuda`, `cpu`, or empty for CUDA when torch sees a GPU.
     pub device: String,
+    /// Ranks of one torch.distributed job (torchrun); 1 trains in one process.
+    pub devices: usize,
     /// The teacher's frames are full frames; the student sees this window of them.
     pub window: Option<crate::frames::Roi>,
     /// The initializers that train (any float initializer, whatever reads it); None: every
@@ -56,10 +58,17 @@ pub struct Outcome {
     pub steps_planned: usize,
     pub capped: bool,
     pub threads: usize,
+    /// Processes that trained together (torchrun's world size).
+    #[serde(default = "one")]
+    pub ranks: usize,
     pub seconds: f64,
     pub frames_per_second: f64,
     pub device: String,
     pub torch: String,
+}
+
+fn one() -> usize {
+    1
 }
 
 /// Checks the schedule every training pass shares; `within` prefixes the message where the
@@ -80,6 +89,17 @@ pub fn check_schedule(within: &str, steps: usize, minutes: Option<f64>, lr: f64,
 
 /// A training thread count: 0 is every core of this machine, resolved once so that the
 /// manifest records the count the weights were trained with.
+/// Checks a `devices` option: at least 1, at most 64, and `batch` an equal share for each.
+pub fn check_devices(within: &str, devices: usize, batch: usize) -> Result<()> {
+    if !(1..=64).contains(&devices) {
+        bail!("{within}devices must be 1 to 64 (got {devices})");
+    }
+    if batch % devices != 0 {
+        bail!("{within}batch ({batch}) must divide among the devices ({devices}): each takes an equal share of every batch");
+    }
+    Ok(())
+}
+
 pub fn resolve_threads(threads: usize) -> usize {
     if threads > 0 { threads } else { std::thread::available_parallelism().map_or(1, |n| n.get()) }
 }
@@ -257,7 +277,7 @@ pub(crate) fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Te
     let mut config = serde_json::json!({
         "student": dir.join("student.onnx"), "teacher": dir.join("teacher.onnx"), "out": dir.join("trained.onnx"),
         "frames": dir.join("frames.npy"), "held_out": dir.join("held_out.npy"), "heads": job.heads, "features": job.features,
-        "window": o.window, "trainable": o.trainable, "steps": o.steps, "warmup": o.warmup, "minutes": o.minutes, "threads": o.threads, "lr": o.lr, "batch": o.batch, "seed": o.seed,
+        "window": o.window, "trainable": o.trainable, "steps": o.steps, "warmup": o.warmup, "minutes": o.minutes, "threads": (o.threads / o.devices.max(1)).max(1), "lr": o.lr, "batch": o.batch, "seed": o.seed,
         "device": if o.device.is_empty() { serde_json::Value::Null } else { o.device.clone().into() },
         "outputs_to": if job.outputs { serde_json::json!(outputs_to) } else { serde_json::Value::Null },
     });
@@ -270,7 +290,7 @@ pub(crate) fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Te
     pb.set_style(ProgressStyle::with_template(&format!("{} [{{bar:30}}] {{pos}}/{{len}} steps, {{msg}} ({{elapsed}}, {{eta}} left)", job.label)).expect("valid template").progress_chars("=> "));
     let config_path = dir.join("config.json");
     let args = [OsStr::new("train"), config_path.as_os_str()];
-    let done = crate::pyenv::run_worker(dir, ("recover_worker.py", WORKER), &[], &args, |event| match event["event"].as_str() {
+    let done = crate::pyenv::run_worker(dir, ("recover_worker.py", WORKER), &[], &args, o.devices, |event| match event["event"].as_str() {
         Some("start") => pb.set_message(format!("on {}", event["device"].as_str().unwrap_or("?"))),
         Some("step") | Some("epoch") => {
             pb.set_length(event["steps"].as_u64().unwrap_or(1));

@@ -12,6 +12,12 @@ straight-through rounding, its integer weights and biases the parameters (see `G
 
   python recover_worker.py train CONFIG.json   # progress as JSON lines on stdout
   python recover_worker.py check MODEL.onnx FRAMES.npy   # every node output vs ONNX Runtime
+
+Under torchrun (`python -m torch.distributed.run --nproc-per-node N recover_worker.py train
+CONFIG.json`) the training is one DistributedDataParallel job: every rank draws the same
+frame order and augmentation, takes its equal share of each batch, and normalizes the loss
+over the whole batch, so the weights are one process's up to float summation order; rank 0
+reports and writes the result.
 """
 import json
 import math
@@ -24,6 +30,10 @@ import onnx
 import torch
 import torch.nn.functional as F
 from onnx import numpy_helper
+
+# torchrun's world: this process's rank and how many train together (1: no torchrun).
+RANK = int(os.environ.get("RANK", "0"))
+WORLD = int(os.environ.get("WORLD_SIZE", "1"))
 
 
 def attrs(node):
@@ -538,7 +548,7 @@ def head_loss(s, t, spec):
         na, no = spec["anchors"], spec["outputs"]
         s, t = s.view(s.shape[0], na, no, *s.shape[2:]), t.view(t.shape[0], na, no, *t.shape[2:])
         obj = torch.sigmoid(t[:, :, 4:5])
-        box = (obj * (torch.sigmoid(s[:, :, :4]) - torch.sigmoid(t[:, :, :4])) ** 2).sum() / obj.sum().clamp(min=1) / 4
+        box = (obj * (torch.sigmoid(s[:, :, :4]) - torch.sigmoid(t[:, :, :4])) ** 2).sum() / batch_total(obj) / 4
         return box * 20.0 + soft_bce(s[:, :, 4:], t[:, :, 4:])
     if kind in ("v8cls", "v5scores"):
         kl = soft_bce_map(s, t)
@@ -548,7 +558,7 @@ def head_loss(s, t, spec):
             # background cells outnumber objects a hundredfold and decide the plain mean, while
             # mAP ranks the objects' scores.
             w = torch.sigmoid(t).amax(1, keepdim=True)
-            loss = loss + spec["foreground"] * 10.0 * (kl.mean(1, keepdim=True) * w).sum() / w.sum().clamp(min=1)
+            loss = loss + spec["foreground"] * 10.0 * (kl.mean(1, keepdim=True) * w).sum() / batch_total(w)
         return loss
     if kind == "v5box":
         # A split YOLOv5 head's box rows: matched where the teacher sees an object.
@@ -557,7 +567,7 @@ def head_loss(s, t, spec):
         s, t = s.view(b, na, 4, h, w), t.view(b, na, 4, h, w)
         obj = spec.get("objectness")
         obj = torch.ones_like(t[:, :, :1]) if obj is None else obj
-        return (obj * (torch.sigmoid(s) - torch.sigmoid(t)) ** 2).sum() / obj.sum().clamp(min=1) / 4 * 20.0
+        return (obj * (torch.sigmoid(s) - torch.sigmoid(t)) ** 2).sum() / batch_total(obj) / 4 * 20.0
     if kind == "v8box":
         r = spec["reg_max"]
         b, _, h, w = s.shape
@@ -565,13 +575,13 @@ def head_loss(s, t, spec):
         pt = torch.softmax(t.view(b, 4, r, h, w), 2)
         kl = (pt * (torch.log(pt.clamp(min=1e-12)) - ls)).sum(2).mean(1, keepdim=True)  # [b, 1, h, w]
         wgt = spec["weight"] if spec.get("weight") is not None else torch.ones_like(kl)
-        loss = (kl * wgt).sum() / wgt.sum().clamp(min=1)
+        loss = (kl * wgt).sum() / batch_total(wgt)
         if spec.get("edge_weight"):
             # The box edges themselves (each side's expected distance, in bins): where a
             # distribution's small changes move the edge, which IoU at 0.95 feels.
             bins = torch.arange(r, dtype=s.dtype, device=s.device).view(1, 1, r, 1, 1)
             edge = ((ls.exp() - pt) * bins).sum(2).abs().mean(1, keepdim=True)
-            loss = loss + spec["edge_weight"] * (edge * wgt).sum() / wgt.sum().clamp(min=1)
+            loss = loss + spec["edge_weight"] * (edge * wgt).sum() / batch_total(wgt)
         return loss
     raise ValueError(kind)
 
@@ -591,7 +601,7 @@ def feature_loss(s, t, keep):
     """MSE of a student feature against the teacher's kept channels, on the teacher's scale."""
     if keep is not None:
         t = t[:, keep]
-    return ((s - t) ** 2).mean() / t.var().clamp(min=1e-6)
+    return ((s - t) ** 2).mean() / batch_var(t).clamp(min=1e-6)
 
 
 def total_loss(ss, ts, heads, features=()):
@@ -675,6 +685,13 @@ def setup(cfg):
     CPU). On the CPU the kernels are deterministic: the same config, thread count and machine
     give the same weights, however loaded the machine is."""
     dev = torch.device(cfg.get("device") or ("cuda" if torch.cuda.is_available() else "cpu"))
+    if WORLD > 1:
+        import torch.distributed as dist
+
+        if dev.type == "cuda":
+            dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+            torch.cuda.set_device(dev)
+        dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
     torch.set_num_threads(int(cfg.get("threads") or os.cpu_count() or 1))
     if dev.type == "cpu":
         torch.use_deterministic_algorithms(True)
@@ -712,8 +729,13 @@ def train(cfg):
             return tot / len(held)
 
     opt = torch.optim.Adam(student.param_groups(cfg["lr"], cfg.get("relative_lr", False), cfg.get("scale_lr", 1.0)))
+    # Under torchrun the training forward goes through DDP, which averages the ranks'
+    # gradients; the held-out loss uses the module itself (every rank computes the same).
+    model = student
+    if WORLD > 1:
+        model = torch.nn.parallel.DistributedDataParallel(student, device_ids=[dev.index] if dev.type == "cuda" else None, broadcast_buffers=False)
     start, before = time.time(), held_loss()
-    emit({"event": "start", "device": str(dev), "parameters": sum(p.numel() for p in student.parameters()), "held_out_loss": before, "frames": n})
+    emit({"event": "start", "device": str(dev), "ranks": WORLD, "parameters": sum(p.numel() for p in student.parameters()), "held_out_loss": before, "frames": n})
     # The schedule follows the step count alone; the minutes only cap a run (reported), so
     # the same job gives the same weights whatever the machine's speed or load.
     steps, warmup = cfg["steps"], cfg.get("warmup", 0)
@@ -725,13 +747,17 @@ def train(cfg):
         for i in range(per_epoch):
             if step >= steps:
                 break
-            if cap is not None and time.time() - start > cap * 60:
+            if cap is not None and over_cap(time.time() - start > cap * 60, dev):
                 capped = True
                 break
+            # Every rank draws the whole batch and its augmentation (so the generator stays
+            # in step with one process's), then trains on its share.
             x = augment(frames[perm[i * batch:(i + 1) * batch].to(dev)], gen)
+            if WORLD > 1:
+                x = x.chunk(WORLD)[RANK]
             with torch.no_grad():
                 t = teacher(x, names)
-            loss = total_loss(student(student_in(x), student_names), t, heads, features)
+            loss = total_loss(model(student_in(x), student_names), t, heads, features)
             # Linear warm-up, then cosine decay to 2% over the remaining steps.
             scale = (step + 1) / warmup if step < warmup else 0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(1, steps - warmup)))
             for g in opt.param_groups:
@@ -740,22 +766,52 @@ def train(cfg):
             loss.backward()
             opt.step()
             student.restore_pinned()
-            step, seen = step + 1, seen + len(x)
-            tot, cnt = tot + float(loss), cnt + 1
+            step, seen = step + 1, seen + len(x) * WORLD
+            last = whole_batch(loss)
+            tot, cnt = tot + last, cnt + 1
             if step % 10 == 0 or step == steps:
-                emit({"event": "step", "step": step, "steps": steps, "loss": float(loss)})
+                emit({"event": "step", "step": step, "steps": steps, "loss": last})
         epoch += 1
         curve.append(tot / max(cnt, 1))
         emit({"event": "epoch", "epoch": epoch, "loss": curve[-1], "step": step, "steps": steps})
     seconds = time.time() - start
     after = held_loss()
-    student.write_back(student_model)
-    onnx.save(student_model, cfg["out"])
-    if cfg.get("outputs_to"):
-        save_outputs(student, student_model, held, cfg["outputs_to"])
+    if RANK == 0:
+        student.write_back(student_model)
+        onnx.save(student_model, cfg["out"])
+        if cfg.get("outputs_to"):
+            save_outputs(student, student_model, held, cfg["outputs_to"])
     emit({"event": "done", "held_out_loss_before": before, "held_out_loss_after": after, "loss_per_epoch": curve, "epochs": epoch,
           "steps": step, "steps_planned": steps, "capped": capped, "seconds": seconds, "frames_per_second": seen / max(seconds, 1e-9),
-          "device": str(dev), "threads": torch.get_num_threads(), "torch": torch.__version__})
+          "device": str(dev), "threads": torch.get_num_threads(), "ranks": WORLD, "torch": torch.__version__})
+    if WORLD > 1:
+        import torch.distributed as dist
+
+        dist.barrier()
+        dist.destroy_process_group()
+
+
+def whole_batch(loss):
+    """The loss of the whole batch, for the report: under torchrun the ranks' shares averaged."""
+    if WORLD == 1:
+        return float(loss)
+    import torch.distributed as dist
+
+    v = loss.detach().clone()
+    dist.all_reduce(v)
+    return float(v) / WORLD
+
+
+def over_cap(mine, dev):
+    """Whether the time cap stops training: rank 0's clock decides for every rank, so all stop
+    at the same step (a rank that stopped alone would leave the others waiting)."""
+    if WORLD == 1:
+        return mine
+    import torch.distributed as dist
+
+    flag = torch.tensor([1.0 if mine else 0.0], device=dev)
+    dist.broadcast(flag, 0)
+    return bool(flag.item())
 
 
 def save_outputs(g, model, frames, folder):
@@ -857,7 +913,34 @@ def conv_gradient_errors(n, v):
 
 
 def emit(obj):
-    print(json.dumps(obj), flush=True)
+    if RANK == 0:
+        print(json.dumps(obj), flush=True)
+
+
+def batch_total(x):
+    """The normalizer `x.sum().clamp(min=1)` of a loss over the whole batch. Under torchrun
+    the ranks' shares are summed, and the result divided by the ranks, since DDP averages
+    their gradients: the loss each rank normalizes by it sums, over the ranks, to the one
+    process's loss. (Normalizers come from the teacher: no gradient flows through them.)"""
+    if WORLD == 1:
+        return x.sum().clamp(min=1)
+    import torch.distributed as dist
+
+    s = x.sum().detach().clone()
+    dist.all_reduce(s)
+    return s.clamp(min=1) / WORLD
+
+
+def batch_var(t):
+    """`t.var()` over the whole batch (the ranks' shares together under torchrun)."""
+    if WORLD == 1:
+        return t.var()
+    import torch.distributed as dist
+
+    s = torch.stack([t.sum(), (t * t).sum(), torch.tensor(float(t.numel()), device=t.device)]).detach()
+    dist.all_reduce(s)
+    total, squares, n = s[0], s[1], s[2]
+    return (squares - total * total / n) / (n - 1)
 
 
 if __name__ == "__main__":

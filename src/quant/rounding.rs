@@ -111,7 +111,7 @@ pub fn learn(float: &ModelProto, graph: &Graph, plan: &Plan, params: &HashMap<St
     std::fs::write(&config_path, serde_json::to_vec(&config)?)?;
     let pb = ProgressBar::new(nodes.len() as u64);
     pb.set_style(ProgressStyle::with_template("learned rounding [{bar:30}] {pos}/{len} layers, {msg} ({elapsed})").expect("valid template").progress_chars("=> "));
-    let done = crate::pyenv::run_worker(dir, ("rounding_worker.py", WORKER), &[("recover_worker.py", INTERPRETER)], &[config_path.as_os_str()], |e| {
+    let done = crate::pyenv::run_worker(dir, ("rounding_worker.py", WORKER), &[("recover_worker.py", INTERPRETER)], &[config_path.as_os_str()], 1, |e| {
         if e["event"] == "layer" {
             pb.set_position(e["done"].as_u64().unwrap_or(0));
             pb.set_message(format!("{}: error {:.4} -> {:.4}", e["node"].as_str().unwrap_or("?"), e["rel_mse_nearest"].as_f64().unwrap_or(f64::NAN), e["rel_mse_learned"].as_f64().unwrap_or(f64::NAN)));
