@@ -80,7 +80,7 @@ pub fn torch_python() -> Result<PathBuf> {
 /// `dir`) with `args`: the JSON events on its stdout go to `on_event`; returns its `done`
 /// event, or fails with the last line of its stderr. With `ranks` above 1 the worker runs
 /// as one torch.distributed job on this machine, through torchrun's launcher (its rank 0
-/// reports; several nodes: docs/guide/prune.md).
+/// reports).
 pub fn run_worker(dir: &Path, script: (&str, &str), companions: &[(&str, &str)], args: &[&std::ffi::OsStr], ranks: usize, mut on_event: impl FnMut(&serde_json::Value)) -> Result<serde_json::Value> {
     use std::io::{BufRead, BufReader};
     use std::process::Stdio;
