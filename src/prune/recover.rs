@@ -63,6 +63,11 @@ pub struct Outcome {
     pub ranks: usize,
     pub seconds: f64,
     pub frames_per_second: f64,
+    #[serde(default)]
+    pub steps_per_second: f64,
+    /// On a GPU, the share of time it was busy while training (sampled through NVML).
+    #[serde(default)]
+    pub gpu_busy_share: Option<f64>,
     pub device: String,
     pub torch: String,
 }

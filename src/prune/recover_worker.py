@@ -11,7 +11,7 @@ recovery): its QuantizeLinear / DequantizeLinear nodes are fake quantization wit
 straight-through rounding, its integer weights and biases the parameters (see `Graph`).
 
   python recover_worker.py train CONFIG.json   # progress as JSON lines on stdout
-  python recover_worker.py check MODEL.onnx FRAMES.npy   # every node output vs ONNX Runtime
+  python recover_worker.py check MODEL.onnx FRAMES.npy [cuda]   # every node output vs ONNX Runtime
 
 Under torchrun (`python -m torch.distributed.run --nproc-per-node N recover_worker.py train
 CONFIG.json`) the training is one DistributedDataParallel job: every rank draws the same
@@ -735,6 +735,7 @@ def train(cfg):
     if WORLD > 1:
         model = torch.nn.parallel.DistributedDataParallel(student, device_ids=[dev.index] if dev.type == "cuda" else None, broadcast_buffers=False)
     start, before = time.time(), held_loss()
+    busy = BusySampler(dev)
     emit({"event": "start", "device": str(dev), "ranks": WORLD, "parameters": sum(p.numel() for p in student.parameters()), "held_out_loss": before, "frames": n})
     # The schedule follows the step count alone; the minutes only cap a run (reported), so
     # the same job gives the same weights whatever the machine's speed or load.
@@ -775,6 +776,7 @@ def train(cfg):
         curve.append(tot / max(cnt, 1))
         emit({"event": "epoch", "epoch": epoch, "loss": curve[-1], "step": step, "steps": steps})
     seconds = time.time() - start
+    gpu_busy = busy.stop()
     after = held_loss()
     if RANK == 0:
         student.write_back(student_model)
@@ -783,12 +785,45 @@ def train(cfg):
             save_outputs(student, student_model, held, cfg["outputs_to"])
     emit({"event": "done", "held_out_loss_before": before, "held_out_loss_after": after, "loss_per_epoch": curve, "epochs": epoch,
           "steps": step, "steps_planned": steps, "capped": capped, "seconds": seconds, "frames_per_second": seen / max(seconds, 1e-9),
-          "device": str(dev), "threads": torch.get_num_threads(), "ranks": WORLD, "torch": torch.__version__})
+          "steps_per_second": step / max(seconds, 1e-9), "gpu_busy_share": gpu_busy, "device": str(dev), "threads": torch.get_num_threads(), "ranks": WORLD, "torch": torch.__version__})
     if WORLD > 1:
         import torch.distributed as dist
 
         dist.barrier()
         dist.destroy_process_group()
+
+
+class BusySampler:
+    """On a GPU, the share of time it was busy while training: NVML's utilization, sampled
+    every 0.1 s in a thread (None on the CPU, or where NVML is not installed)."""
+
+    def __init__(self, dev):
+        self.samples, self.running, self.thread = [], True, None
+        if dev.type != "cuda":
+            return
+        try:
+            import pynvml
+
+            pynvml.nvmlInit()
+            handle = pynvml.nvmlDeviceGetHandleByIndex(dev.index or 0)
+        except Exception:
+            return
+        import threading
+
+        def sample():
+            while self.running:
+                self.samples.append(pynvml.nvmlDeviceGetUtilizationRates(handle).gpu / 100.0)
+                time.sleep(0.1)
+
+        self.thread = threading.Thread(target=sample, daemon=True)
+        self.thread.start()
+
+    def stop(self):
+        self.running = False
+        if self.thread is None or not self.samples:
+            return None
+        self.thread.join()
+        return sum(self.samples) / len(self.samples)
 
 
 def whole_batch(loss):
@@ -824,13 +859,14 @@ def save_outputs(g, model, frames, folder):
         np.save(os.path.join(folder, f"out{k}.npy"), torch.cat([f[k] for f in per_frame]).contiguous().cpu().numpy().astype(np.float32))
 
 
-def check(model_path, frames_path):
+def check(model_path, frames_path, device="cpu"):
     """Every node of the model by the interpreter against ONNX Runtime, on the frames: each
     node alone, fed ONNX Runtime's own values for its inputs (in a quantized graph a float-noise
     difference upstream flips a rounding step, which is not the op's error); the fused
     QuantizeLinear -> DequantizeLinear pairs count as DequantizeLinear, the SiLU pairs as Mul,
     and a Conv counts in each form training runs it in (`conv_form`), whose gradients are
-    also compared with F.conv2d's (`conv_gradient_errors`)."""
+    also compared with F.conv2d's (`conv_gradient_errors`). `device` runs the interpreter
+    there (`cuda` checks the GPU's kernels; ONNX Runtime stays on the CPU)."""
     import onnxruntime as ort
 
     m = onnx.load(model_path)
@@ -844,12 +880,13 @@ def check(model_path, frames_path):
     so = ort.SessionOptions()
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
     sess = ort.InferenceSession(exposed.SerializeToString(), so, providers=["CPUExecutionProvider"])
-    g = Graph(m, trainable=False).to_device(torch.device("cpu"))  # the layout training runs in
+    dev = torch.device(device)
+    g = Graph(m, trainable=False).to_device(dev)  # the layout training runs in
     x = np.load(frames_path)[:2]
     worst = {}
 
     def compare(op, r, v):
-        r, v = r.astype(np.float64), v.contiguous().numpy().astype(np.float64)
+        r, v = r.astype(np.float64), v.detach().cpu().contiguous().numpy().astype(np.float64)
         if r.shape != v.shape:
             worst[op] = float("inf")
             return
@@ -862,7 +899,7 @@ def check(model_path, frames_path):
     for i in range(len(x)):
         ref = dict(zip([o.name for o in sess.get_outputs()], sess.run(None, {g.input: x[i:i + 1]})))
         ref[g.input] = x[i:i + 1]
-        value = lambda name: None if name == "" else g.consts[name] if name in g.consts else g.laid(torch.from_numpy(np.asarray(ref[name])))
+        value = lambda name: None if name == "" else g.consts[name] if name in g.consts else g.laid(torch.from_numpy(np.asarray(ref[name])).to(dev))
         with torch.no_grad():
             for n in m.graph.node:
                 if n.op_type == "Constant" or not all(o in ref for o in n.output if o):
@@ -900,7 +937,7 @@ def conv_gradient_errors(n, v):
             ps = [t.detach().clone().requires_grad_(True) if t is not None else None for t in v[1:3]]
             with torch.enable_grad():
                 y = conv(xs, ps[0], ps[1] if len(ps) > 1 else None, a, form=use_form)
-                g = torch.randn(y.shape, generator=torch.Generator().manual_seed(0))
+                g = torch.randn(y.shape, generator=torch.Generator().manual_seed(0)).to(y.device)
                 y.backward(g.contiguous(memory_format=torch.channels_last) if y.dim() == 4 else g)
             runs.append([t.grad for t in [xs] + ps if t is not None and t.grad is not None])
         fast, plain = runs
@@ -948,6 +985,6 @@ if __name__ == "__main__":
         with open(sys.argv[2]) as f:
             train(json.load(f))
     elif sys.argv[1] == "check":
-        check(sys.argv[2], sys.argv[3])
+        check(sys.argv[2], sys.argv[3], *sys.argv[4:5])
     else:
-        sys.exit(f"usage: {sys.argv[0]} train CONFIG.json | check MODEL.onnx FRAMES.npy")
+        sys.exit(f"usage: {sys.argv[0]} train CONFIG.json | check MODEL.onnx FRAMES.npy [DEVICE]")
