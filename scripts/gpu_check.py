@@ -77,7 +77,7 @@ def _(budget):
     _, out = compile_recipe(W025, [PRUNE, "cleanup"], "pruned", budget)
     frames = os.path.join(work, "frames.npy")
     np.save(frames, np.random.default_rng(0).random((2, 1, 192, 256), dtype=np.float32))
-    r = subprocess.run([sys.executable, "src/prune/recover_worker.py", "check", os.path.join(out, "model.onnx"), frames, DEVICE], capture_output=True, text=True, timeout=budget, check=True)
+    r = subprocess.run([sys.executable, "src/torch/opcheck.py", os.path.join(out, "model.onnx"), frames, DEVICE], capture_output=True, text=True, timeout=budget, check=True)
     check = json.loads(r.stdout.strip().splitlines()[-1])
     return {"worst_op_error": max(check["ops"].values()), "ops": check["ops"], "gradients": check["gradients"]}
 

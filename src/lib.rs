@@ -11,7 +11,8 @@
 //!    agreement), `detect` (decode, NMS, split heads), `optics` (PSFs, blur maps, degradation,
 //!    stress conditions), `inspect` (and the node/parameter/MAC counts every pass reports);
 //! 4. `runtime` (ONNX Runtime and tract, interleaved latency), `frames`, `dataset`,
-//!    `calib_frames`, `pyenv`;
+//!    `calib_frames`, `pyenv` (the cache's Python environments), `torch` (the PyTorch workers:
+//!    interpreter, trainer, op check, learned rounding);
 //! 5. analyses and rewrites: `prune`, `quant`, `scene`, `targets`;
 //! 6. `passes` (the pass contract and context, the registry, one pass per file);
 //! 7. `pipeline` (recipes, the whole-recipe check, the runner, `inspect --scene`'s preview);
@@ -42,6 +43,7 @@ pub mod optics;
 pub mod passes;
 pub mod pipeline;
 pub mod pyenv;
+pub mod torch;
 pub mod quant;
 pub mod rebuild;
 pub mod reference;

@@ -76,24 +76,21 @@ pub fn torch_python() -> Result<PathBuf> {
     }
 }
 
-/// Runs the torch worker `script` (file name, source; written with its `companions` into
-/// `dir`) with `args`: the JSON events on its stdout go to `on_event`; returns its `done`
+/// Runs the torch worker `script` (a file already in `dir`, `torch::run` writes them) with
+/// `args`: the JSON events on its stdout go to `on_event`; returns its `done`
 /// event, or fails with the last line of its stderr. With `ranks` above 1 the worker runs
 /// as one torch.distributed job on this machine, through torchrun's launcher (its rank 0
 /// reports).
-pub fn run_worker(dir: &Path, script: (&str, &str), companions: &[(&str, &str)], args: &[&std::ffi::OsStr], ranks: usize, mut on_event: impl FnMut(&serde_json::Value)) -> Result<serde_json::Value> {
+pub fn run_worker(dir: &Path, script: &str, args: &[&std::ffi::OsStr], ranks: usize, mut on_event: impl FnMut(&serde_json::Value)) -> Result<serde_json::Value> {
     use std::io::{BufRead, BufReader};
     use std::process::Stdio;
-    for (name, source) in companions.iter().chain(std::iter::once(&script)) {
-        std::fs::write(dir.join(name), source)?;
-    }
     let python = torch_python()?;
     let mut command = Command::new(&python);
     if ranks > 1 {
         command.args(["-m", "torch.distributed.run", "--standalone", "--nnodes", "1", "--nproc-per-node"]).arg(ranks.to_string());
     }
     let mut child = command
-        .arg(dir.join(script.0))
+        .arg(dir.join(script))
         .args(args)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -114,7 +111,7 @@ pub fn run_worker(dir: &Path, script: (&str, &str), companions: &[(&str, &str)],
     let err = errors.join().unwrap_or_default();
     match done.filter(|_| status.success()) {
         Some(d) => Ok(d),
-        None => bail!("{} failed ({status}): {}", script.0, err.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message")),
+        None => bail!("{script} failed ({status}): {}", err.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message")),
     }
 }
 

@@ -1,5 +1,5 @@
 //! Recovery by distillation: the pruned model trained to match the unpruned one's head
-//! convolutions and their input features, in a PyTorch worker (`recover_worker.py`, run by the cache's torch Python).
+//! convolutions and their input features, in a PyTorch worker (`src/torch/trainer.py`, run by the cache's torch Python).
 //! Only initializer values come back: node list, initializer names and shapes are checked
 //! against what was sent.
 
@@ -13,9 +13,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::collections::HashMap;
 use std::ffi::OsStr;
 use std::path::Path;
-use std::process::Command;
 
-const WORKER: &str = include_str!("recover_worker.py");
 
 pub struct Options {
     /// Optimizer steps: the schedule (warm-up, cosine decay) follows them alone.
@@ -295,7 +293,7 @@ pub(crate) fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Te
     pb.set_style(ProgressStyle::with_template(&format!("{} [{{bar:30}}] {{pos}}/{{len}} steps, {{msg}} ({{elapsed}}, {{eta}} left)", job.label)).expect("valid template").progress_chars("=> "));
     let config_path = dir.join("config.json");
     let args = [OsStr::new("train"), config_path.as_os_str()];
-    let done = crate::pyenv::run_worker(dir, ("recover_worker.py", WORKER), &[], &args, o.devices, |event| match event["event"].as_str() {
+    let done = crate::torch::run(dir, "trainer.py", &args, o.devices, |event| match event["event"].as_str() {
         Some("start") => pb.set_message(format!("on {}", event["device"].as_str().unwrap_or("?"))),
         Some("step") | Some("epoch") => {
             pb.set_length(event["steps"].as_u64().unwrap_or(1));
@@ -337,15 +335,9 @@ pub fn check_ops(model: &ModelProto, frames: &[Tensor]) -> Result<OpCheck> {
     let dir = work.path();
     crate::onnx::save(model, &dir.join("model.onnx"))?;
     write_frames(frames, &dir.join("frames.npy"))?;
-    std::fs::write(dir.join("recover_worker.py"), WORKER)?;
-    let python = crate::pyenv::torch_python()?;
-    let out = Command::new(&python).arg(dir.join("recover_worker.py")).arg("check").arg(dir.join("model.onnx")).arg(dir.join("frames.npy")).output().with_context(|| format!("cannot run {}", python.display()))?;
-    if !out.status.success() {
-        let err = String::from_utf8_lossy(&out.stderr);
-        bail!("the op check failed: {}", err.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message"));
-    }
-    let report: serde_json::Value = serde_json::from_slice(out.stdout.rsplit(|&b| b == b'\n').find(|l| !l.is_empty()).unwrap_or_default())?;
-    serde_json::from_value(report).map_err(Into::into)
+    let (model, frames) = (dir.join("model.onnx"), dir.join("frames.npy"));
+    let done = crate::torch::run(dir, "opcheck.py", &[model.as_os_str(), frames.as_os_str()], 1, |_| {}).context("the op check")?;
+    serde_json::from_value(done).map_err(Into::into)
 }
 
 /// Copies `trained`'s initializer values into `model`, refusing anything but new values.

@@ -1,7 +1,7 @@
 //! Quantization-aware recovery: the emitted QDQ model itself is the student. The torch
 //! worker reads its QuantizeLinear / DequantizeLinear nodes as fake quantization with
 //! straight-through rounding, and its int8 weights and int32 biases as float parameters in
-//! integer units, rounded and clamped wherever they are read (`recover_worker.Graph`); so the
+//! integer units, rounded and clamped wherever they are read (`interpreter.Graph`, src/torch/); so the
 //! forward it trains is the emitted model's (same scales, zero points, rounding, clipping,
 //! layers kept float), and what comes back are new integers in the same initializers. The
 //! float model (unpruned, or pruned and recovered) is the teacher, matched on the head

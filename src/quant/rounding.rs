@@ -1,7 +1,7 @@
 //! Learned rounding (AdaRound) of convolution weights: each weight goes to the grid point
 //! below or above its float value, whichever makes its layer's output on the quantized
 //! model's input closest to the float layer's, learned in the cache's torch worker
-//! (`rounding_worker.py`, through the recovery worker's op interpreter). The worker sees the
+//! (`src/torch/rounding.py`, through the torch interpreter). The worker sees the
 //! emitted model's exact quantizers (activation scales and zero points, constant operands,
 //! per-channel weight scales); only the integers come back, so emission is otherwise unchanged.
 
@@ -15,8 +15,6 @@ use anyhow::{anyhow, bail, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::collections::HashMap;
 
-const WORKER: &str = include_str!("rounding_worker.py");
-const INTERPRETER: &str = include_str!("../prune/recover_worker.py");
 
 pub struct Options {
     /// The emitted model's activation type and weight bits.
@@ -111,7 +109,7 @@ pub fn learn(float: &ModelProto, graph: &Graph, plan: &Plan, params: &HashMap<St
     std::fs::write(&config_path, serde_json::to_vec(&config)?)?;
     let pb = ProgressBar::new(nodes.len() as u64);
     pb.set_style(ProgressStyle::with_template("learned rounding [{bar:30}] {pos}/{len} layers, {msg} ({elapsed})").expect("valid template").progress_chars("=> "));
-    let done = crate::pyenv::run_worker(dir, ("rounding_worker.py", WORKER), &[("recover_worker.py", INTERPRETER)], &[config_path.as_os_str()], 1, |e| {
+    let done = crate::torch::run(dir, "rounding.py", &[config_path.as_os_str()], 1, |e| {
         if e["event"] == "layer" {
             pb.set_position(e["done"].as_u64().unwrap_or(0));
             pb.set_message(format!("{}: error {:.4} -> {:.4}", e["node"].as_str().unwrap_or("?"), e["rel_mse_nearest"].as_f64().unwrap_or(f64::NAN), e["rel_mse_learned"].as_f64().unwrap_or(f64::NAN)));

@@ -12,7 +12,7 @@ const LAYERS: &[&[&str]] = &[
     &["tensor", "fsutil", "warn", "canvas", "clock"],
     &["onnx", "ir"],
     &["analysis", "metrics", "detect", "optics", "inspect"],
-    &["runtime", "frames", "dataset", "calib_frames", "pyenv"],
+    &["runtime", "frames", "dataset", "calib_frames", "pyenv", "torch"],
     // analyses and rewrites
     &["prune", "quant", "scene", "targets"],
     &["passes"],

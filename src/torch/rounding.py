@@ -1,6 +1,6 @@
 """Learned rounding (AdaRound) for `pdi-compile`'s `quantize` pass, run in the cache's torch venv.
 
-The float graph runs through `recover_worker`'s interpreter twice, node by node over the same
+The float graph runs through `interpreter.py` twice, node by node over the same
 frames: once in float, once with the emitted model's quantizers simulated (activations and
 constant operands fake-quantized with the pass's scales and zero points, convolution weights
 per-channel symmetric with the pass's scales). At each convolution to quantize, each weight's
@@ -9,7 +9,7 @@ layer's output on the quantized model's input matches the float layer on the flo
 (AdaRound, Nagel et al. 2020, with BRECQ's asymmetric target); the quantized run then goes on
 with the learned integers, so later layers learn to undo what earlier ones left.
 
-  python rounding_worker.py CONFIG.json   # progress as JSON lines on stdout; integers to CONFIG's out folder (w{i}.npy)
+  python rounding.py CONFIG.json   # progress as JSON lines on stdout; integers to CONFIG's out folder (w{i}.npy)
 """
 import json
 import os
@@ -22,7 +22,8 @@ import torch
 import torch.nn.functional as F
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import recover_worker as rw  # noqa: E402  (the interpreter, checked against ONNX Runtime)
+import interpreter as rw  # noqa: E402  (checked against ONNX Runtime by opcheck.py)
+from trainer import emit, setup  # noqa: E402
 
 # The rectified sigmoid's stretch (AdaRound's zeta and gamma): h(V) reaches exactly 0 and 1
 # for finite V, so the regularizer can settle every weight on a grid point.
@@ -122,7 +123,7 @@ def learn_layer(node, w, b, scales, qmax, x_q, x_fp, cfg, gen, post=None):
 
 
 def run(cfg):
-    dev, gen = rw.setup(cfg)
+    dev, gen = setup(cfg)
     model = onnx.load(cfg["model"])
     g = rw.Graph(model, trainable=False).to_device(dev)
     acts = cfg["activations"]
@@ -142,7 +143,7 @@ def run(cfg):
     q = {g.input: fake_quant(frames, acts[g.input]) if g.input in acts else frames}
     learned, report = {}, []
     start = time.time()
-    rw.emit({"event": "start", "device": str(dev), "layers": len(layers)})
+    emit({"event": "start", "device": str(dev), "layers": len(layers)})
     for k, n in enumerate(nodes):
         if n.op_type == "Constant":
             continue
@@ -157,7 +158,7 @@ def run(cfg):
             learned[n.name] = ints
             report.append(r)
             vq[1] = ints * scales.view(-1, *([1] * (ints.dim() - 1)))
-            rw.emit({"event": "layer", "done": len(report), "layers": len(layers), **r})
+            emit({"event": "layer", "done": len(report), "layers": len(layers), **r})
         with torch.no_grad():
             out_q = rw.run_node(n, vq)
         for name, a, b in zip(n.output, out_f, out_q):
@@ -170,7 +171,7 @@ def run(cfg):
     seconds = time.time() - start
     for i, l in enumerate(cfg["layers"]):
         np.save(os.path.join(cfg["out"], f"w{i}.npy"), learned[l["node"]].cpu().numpy().astype(np.float32))
-    rw.emit({"event": "done", "seconds": seconds, "device": str(dev), "torch": torch.__version__, "layers": report})
+    emit({"event": "done", "seconds": seconds, "device": str(dev), "torch": torch.__version__, "layers": report})
 
 
 if __name__ == "__main__":

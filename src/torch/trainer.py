@@ -1,0 +1,387 @@
+"""Recovery by distillation, for `pdi-compile`'s `recover` pass and quantization-aware training,
+run in the cache's torch venv. The student (an ONNX graph run by `interpreter.py`) learns to
+match the teacher's head convolutions (the logits before the decode) on unlabelled frames,
+freshly augmented each batch, and the trained initializers go back into the student ONNX file
+unchanged in shape.
+
+  python trainer.py train CONFIG.json   # progress as JSON lines on stdout
+
+Under torchrun (`python -m torch.distributed.run --nproc-per-node N trainer.py train
+CONFIG.json`) the training is one DistributedDataParallel job: every rank draws the same frame
+order and augmentation, takes its equal share of each batch, and normalizes the loss over the
+whole batch, so the weights are one process's up to float summation order; rank 0 reports and
+writes the result.
+"""
+import json
+import math
+import os
+import sys
+import time
+
+import numpy as np
+import onnx
+import torch
+import torch.nn.functional as F
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from interpreter import Graph, cone  # noqa: E402
+
+# torchrun's world: this process's rank and how many train together (1: no torchrun).
+RANK = int(os.environ.get("RANK", "0"))
+WORLD = int(os.environ.get("WORLD_SIZE", "1"))
+
+
+def head_loss(s, t, spec):
+    """Distillation loss of one head convolution's output (student s, teacher t: [B, C, H, W])."""
+    kind = spec["kind"]
+    if kind == "v5":
+        na, no = spec["anchors"], spec["outputs"]
+        s, t = s.view(s.shape[0], na, no, *s.shape[2:]), t.view(t.shape[0], na, no, *t.shape[2:])
+        obj = torch.sigmoid(t[:, :, 4:5])
+        box = (obj * (torch.sigmoid(s[:, :, :4]) - torch.sigmoid(t[:, :, :4])) ** 2).sum() / batch_total(obj) / 4
+        return box * 20.0 + soft_bce(s[:, :, 4:], t[:, :, 4:])
+    if kind in ("v8cls", "v5scores"):
+        kl = soft_bce_map(s, t)
+        loss = kl.mean() * 10.0
+        if spec.get("foreground"):
+            # The same KL where the teacher sees an object (weighted by its best class score):
+            # background cells outnumber objects a hundredfold and decide the plain mean, while
+            # mAP ranks the objects' scores.
+            w = torch.sigmoid(t).amax(1, keepdim=True)
+            loss = loss + spec["foreground"] * 10.0 * (kl.mean(1, keepdim=True) * w).sum() / batch_total(w)
+        return loss
+    if kind == "v5box":
+        # A split YOLOv5 head's box rows: matched where the teacher sees an object.
+        na = spec["anchors"]
+        b, _, h, w = s.shape
+        s, t = s.view(b, na, 4, h, w), t.view(b, na, 4, h, w)
+        obj = spec.get("objectness")
+        obj = torch.ones_like(t[:, :, :1]) if obj is None else obj
+        return (obj * (torch.sigmoid(s) - torch.sigmoid(t)) ** 2).sum() / batch_total(obj) / 4 * 20.0
+    if kind == "v8box":
+        r = spec["reg_max"]
+        b, _, h, w = s.shape
+        ls = torch.log_softmax(s.view(b, 4, r, h, w), 2)
+        pt = torch.softmax(t.view(b, 4, r, h, w), 2)
+        kl = (pt * (torch.log(pt.clamp(min=1e-12)) - ls)).sum(2).mean(1, keepdim=True)  # [b, 1, h, w]
+        wgt = spec["weight"] if spec.get("weight") is not None else torch.ones_like(kl)
+        loss = (kl * wgt).sum() / batch_total(wgt)
+        if spec.get("edge_weight"):
+            # The box edges themselves (each side's expected distance, in bins): where a
+            # distribution's small changes move the edge, which IoU at 0.95 feels.
+            bins = torch.arange(r, dtype=s.dtype, device=s.device).view(1, 1, r, 1, 1)
+            edge = ((ls.exp() - pt) * bins).sum(2).abs().mean(1, keepdim=True)
+            loss = loss + spec["edge_weight"] * (edge * wgt).sum() / batch_total(wgt)
+        return loss
+    raise ValueError(kind)
+
+
+def soft_bce(s, t):
+    """BCE against the teacher's probabilities minus its entropy: a KL, zero when they agree."""
+    return soft_bce_map(s, t).mean() * 10.0
+
+
+def soft_bce_map(s, t):
+    """`soft_bce` per element."""
+    p = torch.sigmoid(t)
+    return F.binary_cross_entropy_with_logits(s, p, reduction="none") - F.binary_cross_entropy_with_logits(t, p, reduction="none")
+
+
+def feature_loss(s, t, keep):
+    """MSE of a student feature against the teacher's kept channels, on the teacher's scale."""
+    if keep is not None:
+        t = t[:, keep]
+    return ((s - t) ** 2).mean() / batch_var(t).clamp(min=1e-6)
+
+
+def total_loss(ss, ts, heads, features=()):
+    n = len(heads)
+    ts = [t[:, h["keep"]] if h.get("keep") is not None else t for t, h in zip(ts[:n], heads)] + list(ts[n:])
+    total = sum(feature_loss(s, t, f["keep"]) for s, t, f in zip(ss[n:], ts[n:], features))
+    ss, ts = ss[:n], ts[:n]
+    for s, t, spec in zip(ss, ts, heads):
+        if spec["kind"] == "v8box":
+            cls = [tt for tt, sp in zip(ts, heads) if sp["kind"] == "v8cls" and tt.shape[2:] == t.shape[2:]]
+            spec = dict(spec, weight=torch.sigmoid(cls[0]).amax(1, keepdim=True) if cls else None)
+        if spec["kind"] == "v5box":
+            sc = [(tt, sp) for tt, sp in zip(ts, heads) if sp["kind"] == "v5scores" and tt.shape[2:] == t.shape[2:]]
+            if sc:
+                tt, sp = sc[0]
+                per = tt.view(tt.shape[0], sp["anchors"], sp["outputs"], *tt.shape[2:])
+                spec = dict(spec, objectness=torch.sigmoid(per[:, :, :1]))
+        total = total + head_loss(s, t, spec)
+    return total
+
+
+def ort_teacher(path, names, threads):
+    """On the CPU the teacher runs on ONNX Runtime (twice as fast as torch there): a callable
+    like Graph's, returning the named values as tensors."""
+    import onnxruntime as ort
+
+    m = onnx.load(path)
+    # Only the head values, for any batch size (the decode after them fixes a batch of 1).
+    del m.graph.output[:]
+    m.graph.output.extend(onnx.ValueInfoProto(name=n) for n in names)
+    del m.graph.value_info[:]
+    keep = cone(list(m.graph.node), names)
+    del m.graph.node[:]
+    m.graph.node.extend(keep)
+    for i in m.graph.input:
+        i.type.tensor_type.shape.dim[0].dim_param = "batch"
+    so = ort.SessionOptions()
+    so.log_severity_level = 3  # the cut leaves the decode's constants unused: not worth a warning
+    # ORT's workers spin after each run by default and take the cores from the torch step that
+    # follows: without spinning, a pruned-v8 training step with its teacher took 133-134 ms
+    # against 150-155 ms (batch 8, 2 cores, the two alternating in one session).
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    # A fixed thread count: the teacher's sums come out the same on every run.
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    sess = ort.InferenceSession(m.SerializeToString(), so, providers=["CPUExecutionProvider"])
+    image = [i.name for i in sess.get_inputs()][0]
+    return lambda x, wanted: [torch.from_numpy(v) for v in sess.run(wanted, {image: x.cpu().numpy()})]
+
+
+def crop(x, window):
+    """The window (input pixels) of a [B, C, H, W] value, on the value's own grid: a feature
+    at stride s keeps the rows and columns the window's pixels cover."""
+    if window is None:
+        return x
+    sy, sx = window["frame_h"] // x.shape[-2], window["frame_w"] // x.shape[-1]
+    return x[..., window["y"] // sy:(window["y"] + window["h"]) // sy, window["x"] // sx:(window["x"] + window["w"]) // sx]
+
+
+def cropped_teacher(teacher, window):
+    """The teacher on full frames, its values cropped to the student's window."""
+    if window is None:
+        return teacher
+    return lambda x, wanted: [crop(v, window) for v in teacher(x, wanted)]
+
+
+def augment(x, gen):
+    """Fresh photometric and geometric jitter each batch: flips, gain, offset, noise."""
+    b = x.shape[0]
+    flip = torch.rand(b, generator=gen) < 0.5
+    x = torch.where(flip.view(b, 1, 1, 1).to(x.device), x.flip(-1), x)
+    gain = (0.85 + 0.3 * torch.rand(b, 1, 1, 1, generator=gen)).to(x.device)
+    offset = (0.06 * torch.rand(b, 1, 1, 1, generator=gen) - 0.03).to(x.device)
+    noise = 0.004 * torch.randn(x.shape, generator=gen).to(x.device)
+    return (x * gain + offset + noise).clamp(0, 1)
+
+
+def setup(cfg):
+    """The device (CUDA when torch sees it, unless the config names one), the config's fixed
+    thread count, and its seed for torch and for the returned generator (which draws on the
+    CPU). On the CPU the kernels are deterministic: the same config, thread count and machine
+    give the same weights, however loaded the machine is."""
+    dev = torch.device(cfg.get("device") or ("cuda" if torch.cuda.is_available() else "cpu"))
+    if WORLD > 1:
+        import torch.distributed as dist
+
+        if dev.type == "cuda":
+            dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+            torch.cuda.set_device(dev)
+        dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
+    torch.set_num_threads(int(cfg.get("threads") or os.cpu_count() or 1))
+    if dev.type == "cpu":
+        torch.use_deterministic_algorithms(True)
+    torch.manual_seed(cfg["seed"])
+    return dev, torch.Generator().manual_seed(cfg["seed"])
+
+
+def train(cfg):
+    dev, gen = setup(cfg)
+    student_model = onnx.load(cfg["student"])
+    only = set(cfg["trainable"]) if cfg.get("trainable") is not None else None
+    student = Graph(student_model, weight_qmax=cfg.get("weight_qmax", 127), pin_extremes=cfg.get("pin_extremes", False),
+                    weight_qmin=cfg.get("weight_qmin"), only=only, scale_groups=cfg.get("scale_groups", ())).to_device(dev)
+    heads, features = cfg["heads"], cfg.get("features", [])
+    names = [h["value"] for h in heads] + [f["value"] for f in features]
+    # The student's copy of a value where it differs (a quantized value's dequantized copy).
+    student_names = [h.get("student_value") or h["value"] for h in heads] + [f["value"] for f in features]
+    teacher = ort_teacher(cfg["teacher"], names, torch.get_num_threads()) if dev.type == "cpu" else Graph(onnx.load(cfg["teacher"]), trainable=False).to_device(dev).eval()
+    window = cfg.get("window")
+    frames = torch.from_numpy(np.load(cfg["frames"])).to(dev)
+    if window is not None:
+        window = dict(window, frame_h=frames.shape[-2], frame_w=frames.shape[-1])
+    teacher = cropped_teacher(teacher, window)
+    student_in = (lambda x: crop(x, window))
+    held = torch.from_numpy(np.load(cfg["held_out"])).to(dev)
+    batch, n = cfg["batch"], len(frames)
+    per_epoch = max(1, n // batch)
+
+    def held_loss():
+        with torch.no_grad():
+            tot = 0.0
+            for i in range(0, len(held), batch):
+                x = held[i:i + batch]
+                tot += float(total_loss(student(student_in(x), student_names), teacher(x, names), heads, features)) * len(x)
+            return tot / len(held)
+
+    opt = torch.optim.Adam(student.param_groups(cfg["lr"], cfg.get("relative_lr", False), cfg.get("scale_lr", 1.0)))
+    # Under torchrun the training forward goes through DDP, which averages the ranks'
+    # gradients; the held-out loss uses the module itself (every rank computes the same).
+    model = student
+    if WORLD > 1:
+        model = torch.nn.parallel.DistributedDataParallel(student, device_ids=[dev.index] if dev.type == "cuda" else None, broadcast_buffers=False)
+    start, before = time.time(), held_loss()
+    busy = BusySampler(dev)
+    emit({"event": "start", "device": str(dev), "ranks": WORLD, "parameters": sum(p.numel() for p in student.parameters()), "held_out_loss": before, "frames": n})
+    # The schedule follows the step count alone; the minutes only cap a run (reported), so
+    # the same job gives the same weights whatever the machine's speed or load.
+    steps, warmup = cfg["steps"], cfg.get("warmup", 0)
+    cap = cfg.get("minutes")
+    step, seen, curve, epoch, capped = 0, 0, [], 0, False
+    while step < steps and not capped:
+        perm = torch.randperm(n, generator=gen)
+        tot, cnt = 0.0, 0
+        for i in range(per_epoch):
+            if step >= steps:
+                break
+            if cap is not None and over_cap(time.time() - start > cap * 60, dev):
+                capped = True
+                break
+            # Every rank draws the whole batch and its augmentation (so the generator stays
+            # in step with one process's), then trains on its share.
+            x = augment(frames[perm[i * batch:(i + 1) * batch].to(dev)], gen)
+            if WORLD > 1:
+                x = x.chunk(WORLD)[RANK]
+            with torch.no_grad():
+                t = teacher(x, names)
+            loss = total_loss(model(student_in(x), student_names), t, heads, features)
+            # Linear warm-up, then cosine decay to 2% over the remaining steps.
+            scale = (step + 1) / warmup if step < warmup else 0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(1, steps - warmup)))
+            for g in opt.param_groups:
+                g["lr"] = g["base_lr"] * scale
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            student.restore_pinned()
+            step, seen = step + 1, seen + len(x) * WORLD
+            last = whole_batch(loss)
+            tot, cnt = tot + last, cnt + 1
+            if step % 10 == 0 or step == steps:
+                emit({"event": "step", "step": step, "steps": steps, "loss": last})
+        epoch += 1
+        curve.append(tot / max(cnt, 1))
+        emit({"event": "epoch", "epoch": epoch, "loss": curve[-1], "step": step, "steps": steps})
+    seconds = time.time() - start
+    gpu_busy = busy.stop()
+    after = held_loss()
+    if RANK == 0:
+        student.write_back(student_model)
+        onnx.save(student_model, cfg["out"])
+        if cfg.get("outputs_to"):
+            save_outputs(student, student_model, held, cfg["outputs_to"])
+    emit({"event": "done", "held_out_loss_before": before, "held_out_loss_after": after, "loss_per_epoch": curve, "epochs": epoch,
+          "steps": step, "steps_planned": steps, "capped": capped, "seconds": seconds, "frames_per_second": seen / max(seconds, 1e-9),
+          "steps_per_second": step / max(seconds, 1e-9), "gpu_busy_share": gpu_busy, "device": str(dev), "threads": torch.get_num_threads(), "ranks": WORLD, "torch": torch.__version__})
+    if WORLD > 1:
+        import torch.distributed as dist
+
+        dist.barrier()
+        dist.destroy_process_group()
+
+
+class BusySampler:
+    """On a GPU, the share of time it was busy while training: NVML's utilization, sampled
+    every 0.1 s in a thread (None on the CPU, or where NVML is not installed)."""
+
+    def __init__(self, dev):
+        self.samples, self.running, self.thread = [], True, None
+        if dev.type != "cuda":
+            return
+        try:
+            import pynvml
+
+            pynvml.nvmlInit()
+            handle = pynvml.nvmlDeviceGetHandleByIndex(dev.index or 0)
+        except Exception:
+            return
+        import threading
+
+        def sample():
+            while self.running:
+                self.samples.append(pynvml.nvmlDeviceGetUtilizationRates(handle).gpu / 100.0)
+                time.sleep(0.1)
+
+        self.thread = threading.Thread(target=sample, daemon=True)
+        self.thread.start()
+
+    def stop(self):
+        self.running = False
+        if self.thread is None or not self.samples:
+            return None
+        self.thread.join()
+        return sum(self.samples) / len(self.samples)
+
+
+def whole_batch(loss):
+    """The loss of the whole batch, for the report: under torchrun the ranks' shares averaged."""
+    if WORLD == 1:
+        return float(loss)
+    import torch.distributed as dist
+
+    v = loss.detach().clone()
+    dist.all_reduce(v)
+    return float(v) / WORLD
+
+
+def over_cap(mine, dev):
+    """Whether the time cap stops training: rank 0's clock decides for every rank, so all stop
+    at the same step (a rank that stopped alone would leave the others waiting)."""
+    if WORLD == 1:
+        return mine
+    import torch.distributed as dist
+
+    flag = torch.tensor([1.0 if mine else 0.0], device=dev)
+    dist.broadcast(flag, 0)
+    return bool(flag.item())
+
+
+def save_outputs(g, model, frames, folder):
+    """The graph outputs of the trained module, frame by frame (the decode fixes a batch of
+    1), as out{k}.npy: what the written model must reproduce on ONNX Runtime."""
+    names = [o.name for o in model.graph.output]
+    with torch.no_grad():
+        per_frame = [g(frames[i:i + 1], names) for i in range(len(frames))]
+    for k in range(len(names)):
+        np.save(os.path.join(folder, f"out{k}.npy"), torch.cat([f[k] for f in per_frame]).contiguous().cpu().numpy().astype(np.float32))
+
+
+def emit(obj):
+    if RANK == 0:
+        print(json.dumps(obj), flush=True)
+
+
+def batch_total(x):
+    """The normalizer `x.sum().clamp(min=1)` of a loss over the whole batch. Under torchrun
+    the ranks' shares are summed, and the result divided by the ranks, since DDP averages
+    their gradients: the loss each rank normalizes by it sums, over the ranks, to the one
+    process's loss. (Normalizers come from the teacher: no gradient flows through them.)"""
+    if WORLD == 1:
+        return x.sum().clamp(min=1)
+    import torch.distributed as dist
+
+    s = x.sum().detach().clone()
+    dist.all_reduce(s)
+    return s.clamp(min=1) / WORLD
+
+
+def batch_var(t):
+    """`t.var()` over the whole batch (the ranks' shares together under torchrun)."""
+    if WORLD == 1:
+        return t.var()
+    import torch.distributed as dist
+
+    s = torch.stack([t.sum(), (t * t).sum(), torch.tensor(float(t.numel()), device=t.device)]).detach()
+    dist.all_reduce(s)
+    total, squares, n = s[0], s[1], s[2]
+    return (squares - total * total / n) / (n - 1)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 3 or sys.argv[1] != "train":
+        sys.exit(f"usage: {sys.argv[0]} train CONFIG.json")
+    with open(sys.argv[2]) as f:
+        train(json.load(f))
