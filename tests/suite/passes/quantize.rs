@@ -171,11 +171,17 @@ fn mixed_precision_keeps_the_most_sensitive_layers_float_until_the_budget_holds(
     let dir = tempfile::tempdir().unwrap();
     let small = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 8, max_float_layers: 3");
     let impossible = variant(dir.path(), &small, "error_budget: 0.1", "error_budget: 0.0");
-    let q = compile(V5, &impossible, &dir.path().join("impossible"), &[]);
+    let r = run_compile(V5, &impossible, &dir.path().join("impossible"), &[]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    let pass = report["passes"].as_array().unwrap().last().unwrap();
+    let q = &pass["details"];
     let kept = q["mixed_precision"]["kept_float"].as_array().unwrap();
     let rejected = q["mixed_precision"]["tried_and_rejected"].as_array().unwrap();
     assert_eq!(kept.len() + rejected.len(), 3, "three layers tried: {}", q["mixed_precision"]);
-    assert!(q["warnings"].to_string().contains("INT8 missed its error budget") && q["mixed_precision"]["note"].as_str().unwrap().contains("not met"), "{}", q["warnings"]);
+    // The pass's warnings are in its report entry (and the command's), not in its details.
+    assert!(pass["warnings"].to_string().contains("quantize: INT8 missed its error budget") && q["mixed_precision"]["note"].as_str().unwrap().contains("not met"), "{}", pass["warnings"]);
+    assert!(report["warnings"].to_string().contains("INT8 missed its error budget"), "{}", report["warnings"]);
     for k in kept {
         assert!(k["output_rel_l2_after"].as_f64().unwrap() < k["output_rel_l2_before"].as_f64().unwrap(), "a kept layer helped: {k}");
     }
