@@ -8,7 +8,7 @@ use serde::Serialize;
 use std::collections::HashMap;
 use std::path::PathBuf;
 
-/// What passes may need from the command line.
+/// What passes share: what the command line gave, what earlier passes hand on, warnings.
 #[derive(Default, Clone, Debug)]
 pub struct PassContext {
     /// Camera blur map (`--psf`).
