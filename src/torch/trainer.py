@@ -21,6 +21,7 @@ import time
 import numpy as np
 import onnx
 import torch
+import torch.distributed as dist
 import torch.nn.functional as F
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -176,8 +177,6 @@ def setup(cfg):
     give the same weights, however loaded the machine is."""
     dev = torch.device(cfg.get("device") or ("cuda" if torch.cuda.is_available() else "cpu"))
     if WORLD > 1:
-        import torch.distributed as dist
-
         if dev.type == "cuda":
             dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
             torch.cuda.set_device(dev)
@@ -277,8 +276,6 @@ def train(cfg):
           "steps": step, "steps_planned": steps, "capped": capped, "seconds": seconds, "frames_per_second": seen / max(seconds, 1e-9),
           "steps_per_second": step / max(seconds, 1e-9), "gpu_busy_share": gpu_busy, "device": str(dev), "threads": torch.get_num_threads(), "ranks": WORLD, "torch": torch.__version__})
     if WORLD > 1:
-        import torch.distributed as dist
-
         dist.barrier()
         dist.destroy_process_group()
 
@@ -320,8 +317,6 @@ def whole_batch(loss):
     """The loss of the whole batch, for the report: under torchrun the ranks' shares averaged."""
     if WORLD == 1:
         return float(loss)
-    import torch.distributed as dist
-
     v = loss.detach().clone()
     dist.all_reduce(v)
     return float(v) / WORLD
@@ -332,8 +327,6 @@ def over_cap(mine, dev):
     at the same step (a rank that stopped alone would leave the others waiting)."""
     if WORLD == 1:
         return mine
-    import torch.distributed as dist
-
     flag = torch.tensor([1.0 if mine else 0.0], device=dev)
     dist.broadcast(flag, 0)
     return bool(flag.item())
@@ -361,8 +354,6 @@ def batch_total(x):
     process's loss. (Normalizers come from the teacher: no gradient flows through them.)"""
     if WORLD == 1:
         return x.sum().clamp(min=1)
-    import torch.distributed as dist
-
     s = x.sum().detach().clone()
     dist.all_reduce(s)
     return s.clamp(min=1) / WORLD
@@ -372,8 +363,6 @@ def batch_var(t):
     """`t.var()` over the whole batch (the ranks' shares together under torchrun)."""
     if WORLD == 1:
         return t.var()
-    import torch.distributed as dist
-
     s = torch.stack([t.sum(), (t * t).sum(), torch.tensor(float(t.numel()), device=t.device)]).detach()
     dist.all_reduce(s)
     total, squares, n = s[0], s[1], s[2]

@@ -35,9 +35,8 @@ fn wide_depthwise_chain() -> ModelProto {
 #[test]
 fn wide_depthwise_splits_into_bands_tract_vectorizes_and_computes_the_same() {
     let mut m = wide_depthwise_chain();
-    let mut rng = crate::common::Lcg(3);
-    let inputs = vec![("x".to_string(), Tensor::f32(vec![1, 3, 20, 24], (0..3 * 480).map(|_| rng.next_f32()).collect()))];
-    let before = runtime::load(Engine::Ort, &m, &inputs, 1).unwrap().run(&inputs).unwrap();
+    let inputs = vec![input("x", vec![1, 3, 20, 24], 3)];
+    let before = outputs(Engine::Ort, &m, &inputs);
     let reports = run_passes(&mut m, "split-wide-depthwise");
     let d = &reports[0].details;
     let bands: Vec<usize> = d["split"].as_array().unwrap().iter().map(|s| s["bands"].as_array().unwrap().len()).collect();

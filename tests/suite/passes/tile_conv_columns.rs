@@ -34,9 +34,8 @@ fn direct_conv_chain() -> ModelProto {
 #[test]
 fn conv_column_tiles_compute_the_same_on_ort_and_tract() {
     let mut m = direct_conv_chain();
-    let mut rng = crate::common::Lcg(5);
-    let inputs = vec![("x".to_string(), Tensor::f32(vec![1, 3, 9, 301], (0..3 * 9 * 301).map(|_| rng.next_f32()).collect()))];
-    let before = runtime::load(Engine::Ort, &m, &inputs, 1).unwrap().run(&inputs).unwrap();
+    let inputs = vec![input("x", vec![1, 3, 9, 301], 5)];
+    let before = outputs(Engine::Ort, &m, &inputs);
     let reports = run_passes(&mut m, "{tile-conv-columns: {nodes: [a, b, y, z, nowhere]}}");
     let d = &reports[0].details;
     let tiles: Vec<u64> = d["tiled"].as_array().unwrap().iter().map(|t| t["tiles"].as_u64().unwrap()).collect();
