@@ -539,7 +539,7 @@ fn quantization_aware(float: &ModelProto, original: Option<&super::Teacher>, qua
         "held_out_frames": held_out.len(),
         "output_rel_l2": { "before": super::prune::by_name(&before), "after": super::prune::by_name(&after) },
         "emitted_vs_fake_quant_rel_l2": t.reproduced,
-        "not_reproducible": t.outcome.capped.then(|| t.outcome.cap_note()),
+        "not_reproducible": t.outcome.not_reproducible(),
         "training": t.outcome,
     });
     // Against the model it learned from: the float model, or the original before pruning.

@@ -189,7 +189,7 @@ impl Pass for RknnQat {
             "held_out_frames": held.len(),
             "qdq_vs_float_rel_l2": { "before": by_name(&before), "after": by_name(&after) },
             "emitted_vs_fake_quant_rel_l2": t.reproduced,
-            "not_reproducible": t.outcome.capped.then(|| t.outcome.cap_note()),
+            "not_reproducible": t.outcome.not_reproducible(),
             "training": t.outcome,
         }))
     }

@@ -31,6 +31,8 @@ pub struct Options {
     pub device: String,
     /// Ranks of one torch.distributed job (torchrun); 1 trains in one process.
     pub devices: usize,
+    /// On one GPU, the training step captured once as a CUDA graph and replayed.
+    pub cuda_graph: bool,
     /// The teacher's frames are full frames; the student sees this window of them.
     pub window: Option<crate::frames::Roi>,
     /// The initializers that train (any float initializer, whatever reads it); None: every
@@ -66,6 +68,12 @@ pub struct Outcome {
     /// On a GPU, the share of time it was busy while training (sampled through NVML).
     #[serde(default)]
     pub gpu_busy_share: Option<f64>,
+    /// Frames per step (all ranks together).
+    #[serde(default)]
+    pub batch: usize,
+    /// On one GPU: whether the step was captured as a CUDA graph, or why not.
+    #[serde(default)]
+    pub cuda_graph: Option<serde_json::Value>,
     pub device: String,
     pub torch: String,
 }
@@ -111,6 +119,17 @@ impl Outcome {
     /// What a report and the manifest say of a run the time cap stopped.
     pub fn cap_note(&self) -> String {
         format!("stopped at {} of {} steps by the time cap; the artifact is not reproducible", self.steps, self.steps_planned)
+    }
+
+    /// Why the trained weights would not come out the same on a rebuild, if they would not:
+    /// the time cap bit, or the training ran on a GPU (cuDNN picks its kernels by timing
+    /// them, runs convolutions in TF32 and sums gradients with atomics: the same job gives
+    /// other last bits each time).
+    pub fn not_reproducible(&self) -> Option<String> {
+        if self.capped {
+            return Some(self.cap_note());
+        }
+        self.device.starts_with("cuda").then(|| format!("trained on {}: GPU kernels do not sum in the same order twice; the artifact is not reproducible byte for byte", self.device))
     }
 }
 
@@ -280,7 +299,7 @@ pub(crate) fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Te
     let mut config = serde_json::json!({
         "student": dir.join("student.onnx"), "teacher": dir.join("teacher.onnx"), "out": dir.join("trained.onnx"),
         "frames": dir.join("frames.npy"), "held_out": dir.join("held_out.npy"), "heads": job.heads, "features": job.features,
-        "window": o.window, "trainable": o.trainable, "steps": o.steps, "warmup": o.warmup, "minutes": o.minutes, "threads": (o.threads / o.devices.max(1)).max(1), "lr": o.lr, "batch": o.batch, "seed": o.seed,
+        "window": o.window, "trainable": o.trainable, "steps": o.steps, "warmup": o.warmup, "minutes": o.minutes, "threads": (o.threads / o.devices.max(1)).max(1), "lr": o.lr, "batch": o.batch, "seed": o.seed, "cuda_graph": o.cuda_graph,
         "device": if o.device.is_empty() { serde_json::Value::Null } else { o.device.clone().into() },
         "outputs_to": if job.outputs { serde_json::json!(outputs_to) } else { serde_json::Value::Null },
     });
@@ -374,7 +393,7 @@ pub(crate) fn write_frames(frames: &[Tensor], path: &Path) -> Result<()> {
 
 #[cfg(test)]
 mod tests {
-    use super::weigh_terms;
+    use super::{weigh_terms, Outcome};
 
     #[test]
     fn each_yolov8_head_gets_its_own_term() {
@@ -384,5 +403,18 @@ mod tests {
         assert_eq!(heads[1]["foreground"], 2.0);
         assert!(heads[0].get("foreground").is_none() && heads[1].get("edge_weight").is_none());
         assert!(heads[2].get("edge_weight").is_none() && heads[2].get("foreground").is_none());
+    }
+
+    /// A GPU's training, or one the time cap stopped, is marked not reproducible; a whole CPU
+    /// training is not (its bytes are checked by the rebuild tests).
+    #[test]
+    fn a_gpu_or_capped_training_is_marked_not_reproducible() {
+        let outcome = |device: &str, capped: bool| -> Outcome {
+            serde_json::from_value(serde_json::json!({"held_out_loss_before": 1.0, "held_out_loss_after": 0.5, "loss_per_epoch": [], "epochs": 1, "steps": 10, "steps_planned": 20,
+                "capped": capped, "threads": 2, "seconds": 1.0, "frames_per_second": 1.0, "device": device, "torch": "2.4"})).unwrap()
+        };
+        assert_eq!(outcome("cpu", false).not_reproducible(), None);
+        assert!(outcome("cpu", true).not_reproducible().unwrap().contains("time cap"));
+        assert!(outcome("cuda:0", false).not_reproducible().unwrap().contains("trained on cuda:0"));
     }
 }

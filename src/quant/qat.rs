@@ -31,7 +31,7 @@ pub const EDGE_WEIGHT: f64 = 1.0;
 /// measured without it; `recover`'s default is for pruned students).
 pub fn schedule(steps: usize, minutes: Option<f64>, threads: usize, lr: f64, batch: usize, seed: u64, device: String) -> recover::Options {
     let threads = recover::resolve_threads(threads);
-    recover::Options { steps, warmup: 0, minutes, threads, lr, batch, seed, device, devices: 1, window: None, trainable: None, box_edges: EDGE_WEIGHT, class_foreground: 0.0 }
+    recover::Options { steps, warmup: 0, minutes, threads, lr, batch, seed, device, devices: 1, cuda_graph: true, window: None, trainable: None, box_edges: EDGE_WEIGHT, class_foreground: 0.0 }
 }
 
 pub struct Trained {

@@ -145,7 +145,10 @@ def reshape(x, shape):
 
 
 def ints(t):
-    return None if t is None else [int(v) for v in t.flatten().tolist()]
+    """An operand's integers: a tensor's, or a list `Graph.plan` read from a constant once."""
+    if t is None or isinstance(t, list):
+        return t
+    return [int(v) for v in t.flatten().tolist()]
 
 
 def ste_round(x):
@@ -182,9 +185,10 @@ def dequantize_linear(q, scale, zp, a):
     return (q.float() - z) * along(scale, q, axis)
 
 
-def run_node(n, v):
-    """Outputs of node n given its input values v (None for omitted optional inputs)."""
-    a, op = attrs(n), n.op_type
+def run_node(n, v, a=None):
+    """Outputs of node n given its input values v (None for omitted optional inputs) and its
+    attributes `a` (parsed from n when not given)."""
+    a, op = attrs(n) if a is None else a, n.op_type
     if op == "QuantizeLinear":
         return [quantize_linear(v[0], v[1], v[2] if len(v) > 2 else None, a)]
     if op == "DequantizeLinear":
@@ -233,7 +237,7 @@ def run_node(n, v):
     if op == "Softmax":
         return [torch.softmax(v[0], a.get("axis", -1))]
     if op == "Resize":
-        scales = v[2] if len(v) > 2 and v[2] is not None and v[2].numel() else None
+        scales = v[2] if len(v) > 2 and v[2] is not None and len(v[2]) else None
         if a.get("mode", b"nearest") not in (b"nearest", "nearest") or scales is None:
             raise ValueError("only nearest Resize by scales is interpreted")
         return [F.interpolate(v[0], scale_factor=[float(s) for s in scales[2:]], mode="nearest")]
@@ -302,6 +306,19 @@ def silu_pairs(g):
         if len(rs) == 1 and rs[0].op_type == "Mul" and sorted(rs[0].input) == sorted([n.input[0], n.output[0]]):
             pairs[rs[0].output[0]] = (n.input[0], n.output[0])
     return pairs
+
+
+# The operands (by position) read as host numbers when constant: what `run_node` turns into
+# Python numbers anyway (a read from the device on CUDA, at every step without `Graph.plan`).
+HOST_OPERANDS = {
+    "Slice": {1: "ints", 2: "ints", 3: "ints", 4: "ints"},
+    "Reshape": {1: "ints"},
+    "Split": {1: "ints"},
+    "ReduceMean": {1: "ints"},
+    "ReduceSum": {1: "ints"},
+    "Resize": {2: "floats"},
+    "Clip": {1: "float", 2: "float"},
+}
 
 
 # The largest int32 a float32 holds exactly (its spacing is 128 just below 2^31): int32
@@ -427,27 +444,59 @@ class Graph(torch.nn.Module):
         env = {self.input: self.laid(x)}
         key = tuple(wanted)
         if key not in self.plans:
-            self.plans[key] = cone(self.nodes, wanted)
-        for n in self.plans[key]:
+            self.plans[key] = self.plan(key)
+        for step in self.plans[key]:
+            step(env)
+        return [env[w] for w in wanted]
+
+    def plan(self, wanted):
+        """The steps that compute `wanted`, built once per request: each node's attributes are
+        parsed and its constant shape, bound and scale operands read to the host here, so a
+        forward is a walk over prepared closures with no protobuf parsing and no read from
+        the device (which CUDA graph capture forbids). The same ops in the same order as the
+        node list: the values are the node-by-node interpreter's, to the bit."""
+        steps = []
+        for n in cone(self.nodes, list(wanted)):
+            out = n.output[0]
             if n.op_type == "Constant":
                 continue
-            if n.op_type == "QuantizeLinear" and n.output[0] in self.fused:
-                scale, zp, lo, hi = self.fused[n.output[0]]
-                if self.fused_scale[n.output[0]] in self.key:
-                    scale = self.value(self.fused_scale[n.output[0]], env)
-                env[n.output[0]] = fake_quant(env[n.input[0]], scale, zp, lo, hi)
+            if n.op_type == "QuantizeLinear" and out in self.fused:
+                scale, zp, lo, hi = self.fused[out]
+                learned = self.fused_scale[out] if self.fused_scale[out] in self.key else None
+                steps.append(lambda env, i=n.input[0], o=out, s=scale, zp=zp, lo=lo, hi=hi, learned=learned:
+                             env.__setitem__(o, fake_quant(env[i], s if learned is None else self.value(learned, env), zp, lo, hi)))
                 continue
             if n.op_type == "DequantizeLinear" and n.input[0] in self.fused:
-                env[n.output[0]] = env[n.input[0]]
+                steps.append(lambda env, i=n.input[0], o=out: env.__setitem__(o, env[i]))
                 continue
-            if n.op_type == "Sigmoid" and n.output[0] in self.silu_gates and n.output[0] not in key:
+            if n.op_type == "Sigmoid" and out in self.silu_gates and out not in wanted:
                 continue
-            if n.op_type == "Mul" and n.output[0] in self.silu:
-                env[n.output[0]] = F.silu(env[self.silu[n.output[0]][0]])
+            if n.op_type == "Mul" and out in self.silu:
+                steps.append(lambda env, i=self.silu[out][0], o=out: env.__setitem__(o, F.silu(env[i])))
                 continue
-            for o, val in zip(n.output, run_node(n, [self.value(i, env) for i in n.input])):
-                env[o] = self.requantize_bias(o, val) if o in self.requant else val
-        return [env[w] for w in wanted]
+            steps.append(self.node_step(n))
+        return steps
+
+    def node_step(self, n):
+        """One node as a closure over its parsed attributes and its operands' getters."""
+        a = attrs(n)
+        getters = [self.getter(n, k, name) for k, name in enumerate(n.input)]
+        requant = [o in self.requant for o in n.output]
+
+        def step(env):
+            for o, val, rq in zip(n.output, run_node(n, [g(env) for g in getters], a), requant):
+                env[o] = self.requantize_bias(o, val) if rq else val
+        return step
+
+    def getter(self, n, k, name):
+        """How the node reads operand k: a constant shape, bound or scale as host numbers
+        (`HOST_OPERANDS`), anything else through `value` at run time."""
+        kind = HOST_OPERANDS.get(n.op_type, {}).get(k)
+        if kind is not None and name in self.consts and name not in self.key:
+            t = self.consts[name]
+            host = ints(t) if kind == "ints" else ([float(v) for v in t.flatten().tolist()] if kind == "floats" else float(t))
+            return lambda env: host
+        return lambda env: self.value(name, env)
 
     def write_back(self, model):
         """The trained parameters into `model`'s initializers (same names, shapes, order)."""

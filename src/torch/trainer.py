@@ -160,14 +160,24 @@ def cropped_teacher(teacher, window):
 
 
 def augment(x, gen):
-    """Fresh photometric and geometric jitter each batch: flips, gain, offset, noise."""
-    b = x.shape[0]
-    flip = torch.rand(b, generator=gen) < 0.5
+    """Fresh photometric and geometric jitter each batch: flips, gain, offset, noise, drawn
+    where the generator lives (on a GPU a CPU draw of the noise, 12 M numbers at batch 256
+    and 256x192, would leave the GPU idle)."""
+    b, d = x.shape[0], gen.device
+    flip = torch.rand(b, generator=gen, device=d) < 0.5
     x = torch.where(flip.view(b, 1, 1, 1).to(x.device), x.flip(-1), x)
-    gain = (0.85 + 0.3 * torch.rand(b, 1, 1, 1, generator=gen)).to(x.device)
-    offset = (0.06 * torch.rand(b, 1, 1, 1, generator=gen) - 0.03).to(x.device)
-    noise = 0.004 * torch.randn(x.shape, generator=gen).to(x.device)
+    gain = (0.85 + 0.3 * torch.rand(b, 1, 1, 1, generator=gen, device=d)).to(x.device)
+    offset = (0.06 * torch.rand(b, 1, 1, 1, generator=gen, device=d) - 0.03).to(x.device)
+    noise = 0.004 * torch.randn(x.shape, generator=gen, device=d).to(x.device)
     return (x * gain + offset + noise).clamp(0, 1)
+
+
+def on_device(specs, dev):
+    """The heads' and features' channel lists as index tensors on a GPU (indexing with a list
+    copies it from the host at every step, which CUDA graph capture forbids)."""
+    if dev.type == "cpu":
+        return specs
+    return [dict(s, keep=torch.tensor(s["keep"], device=dev)) if s.get("keep") is not None else s for s in specs]
 
 
 def setup(cfg):
@@ -194,7 +204,7 @@ def train(cfg):
     only = set(cfg["trainable"]) if cfg.get("trainable") is not None else None
     student = Graph(student_model, weight_qmax=cfg.get("weight_qmax", 127), pin_extremes=cfg.get("pin_extremes", False),
                     weight_qmin=cfg.get("weight_qmin"), only=only, scale_groups=cfg.get("scale_groups", ())).to_device(dev)
-    heads, features = cfg["heads"], cfg.get("features", [])
+    heads, features = on_device(cfg["heads"], dev), on_device(cfg.get("features", []), dev)
     names = [h["value"] for h in heads] + [f["value"] for f in features]
     # The student's copy of a value where it differs (a quantized value's dequantized copy).
     student_names = [h.get("student_value") or h["value"] for h in heads] + [f["value"] for f in features]
@@ -217,12 +227,32 @@ def train(cfg):
                 tot += float(total_loss(student(student_in(x), student_names), teacher(x, names), heads, features)) * len(x)
             return tot / len(held)
 
-    opt = torch.optim.Adam(student.param_groups(cfg["lr"], cfg.get("relative_lr", False), cfg.get("scale_lr", 1.0)))
+    groups = student.param_groups(cfg["lr"], cfg.get("relative_lr", False), cfg.get("scale_lr", 1.0))
+    # On one GPU the step is captured as a CUDA graph (`Captured`): Adam then keeps its state
+    # and learning rates on the device, and the schedule writes the rates in place.
+    graphed = dev.type == "cuda" and WORLD == 1 and cfg.get("cuda_graph", True)
+    if graphed:
+        for g in groups:
+            g["lr"] = torch.tensor(g["lr"], device=dev)
+    opt = torch.optim.Adam(groups, capturable=graphed)
     # Under torchrun the training forward goes through DDP, which averages the ranks'
     # gradients; the held-out loss uses the module itself (every rank computes the same).
     model = student
     if WORLD > 1:
         model = torch.nn.parallel.DistributedDataParallel(student, device_ids=[dev.index] if dev.type == "cuda" else None, broadcast_buffers=False)
+
+    def train_step(x):
+        with torch.no_grad():
+            t = teacher(x, names)
+        loss = total_loss(model(student_in(x), student_names), t, heads, features)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        student.restore_pinned()
+        return loss.detach()
+    run_step = Captured(train_step, opt) if graphed else train_step
+    # The augmentation draws on the device (the frame order stays the CPU generator's).
+    agen = gen if dev.type == "cpu" else torch.Generator(device=dev).manual_seed(cfg["seed"])
     start, before = time.time(), held_loss()
     busy = BusySampler(dev)
     emit({"event": "start", "device": str(dev), "ranks": WORLD, "parameters": sum(p.numel() for p in student.parameters()), "held_out_loss": before, "frames": n})
@@ -232,7 +262,8 @@ def train(cfg):
     cap = cfg.get("minutes")
     step, seen, curve, epoch, capped = 0, 0, [], 0, False
     while step < steps and not capped:
-        perm = torch.randperm(n, generator=gen)
+        # On the device once an epoch: a copy from the host at every step waits for the GPU.
+        perm = torch.randperm(n, generator=gen).to(dev)
         tot, cnt = 0.0, 0
         for i in range(per_epoch):
             if step >= steps:
@@ -242,28 +273,33 @@ def train(cfg):
                 break
             # Every rank draws the whole batch and its augmentation (so the generator stays
             # in step with one process's), then trains on its share.
-            x = augment(frames[perm[i * batch:(i + 1) * batch].to(dev)], gen)
+            x = augment(frames[perm[i * batch:(i + 1) * batch]], agen)
             if WORLD > 1:
                 x = x.chunk(WORLD)[RANK]
-            with torch.no_grad():
-                t = teacher(x, names)
-            loss = total_loss(model(student_in(x), student_names), t, heads, features)
             # Linear warm-up, then cosine decay to 2% over the remaining steps.
             scale = (step + 1) / warmup if step < warmup else 0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * (step - warmup) / max(1, steps - warmup)))
             for g in opt.param_groups:
-                g["lr"] = g["base_lr"] * scale
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            student.restore_pinned()
-            step, seen = step + 1, seen + len(x) * WORLD
+                if graphed:
+                    g["lr"].fill_(g["base_lr"] * scale)
+                else:
+                    g["lr"] = g["base_lr"] * scale
+            loss = run_step(x)
+            step, seen, cnt = step + 1, seen + len(x) * WORLD, cnt + 1
+            if dev.type == "cuda":
+                # Summed on the device and read every 10 steps: a read per step waits for the GPU.
+                tot = tot + loss
+                if step % 10 == 0 or step == steps:
+                    emit({"event": "step", "step": step, "steps": steps, "loss": whole_batch(loss)})
+                continue
             last = whole_batch(loss)
-            tot, cnt = tot + last, cnt + 1
+            tot = tot + last
             if step % 10 == 0 or step == steps:
                 emit({"event": "step", "step": step, "steps": steps, "loss": last})
         epoch += 1
-        curve.append(tot / max(cnt, 1))
+        curve.append((whole_batch(tot) if torch.is_tensor(tot) else tot) / max(cnt, 1))
         emit({"event": "epoch", "epoch": epoch, "loss": curve[-1], "step": step, "steps": steps})
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)  # the queued steps count in the time
     seconds = time.time() - start
     gpu_busy = busy.stop()
     after = held_loss()
@@ -274,10 +310,58 @@ def train(cfg):
             save_outputs(student, student_model, held, cfg["outputs_to"])
     emit({"event": "done", "held_out_loss_before": before, "held_out_loss_after": after, "loss_per_epoch": curve, "epochs": epoch,
           "steps": step, "steps_planned": steps, "capped": capped, "seconds": seconds, "frames_per_second": seen / max(seconds, 1e-9),
-          "steps_per_second": step / max(seconds, 1e-9), "gpu_busy_share": gpu_busy, "device": str(dev), "threads": torch.get_num_threads(), "ranks": WORLD, "torch": torch.__version__})
+          "steps_per_second": step / max(seconds, 1e-9), "gpu_busy_share": gpu_busy, "device": str(dev), "threads": torch.get_num_threads(), "ranks": WORLD, "torch": torch.__version__,
+          "batch": batch, "cuda_graph": run_step.report() if graphed else None})
     if WORLD > 1:
         dist.barrier()
         dist.destroy_process_group()
+
+
+class Captured:
+    """A training step on one GPU, captured as a CUDA graph and replayed: one launch a step
+    instead of about a thousand from Python (teacher, student, loss, backward, Adam), which
+    is what kept the GPU 20-33% busy at 256x192. The first `EAGER` steps run as they are, on
+    a side stream (they warm cuDNN and Adam's state; they are training steps like the
+    others); the next is captured. Where capture fails, training goes on eagerly and the
+    report says why."""
+
+    EAGER = 3
+
+    def __init__(self, step, opt):
+        self.step, self.opt, self.calls = step, opt, 0
+        self.graph, self.error, self.static_x, self.static_loss = None, None, None, None
+        self.side = torch.cuda.Stream()
+
+    def __call__(self, x):
+        self.calls += 1
+        if self.graph is not None:
+            self.static_x.copy_(x)
+            self.graph.replay()
+            return self.static_loss.clone()
+        if self.calls <= self.EAGER or self.error is not None:
+            self.side.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(self.side):
+                loss = self.step(x)
+            torch.cuda.current_stream().wait_stream(self.side)
+            return loss
+        try:
+            self.static_x = x.clone()
+            self.opt.zero_grad(set_to_none=True)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                self.static_loss = self.step(self.static_x)
+            self.graph = graph
+        except Exception as e:  # train on eagerly, and say why
+            self.error = f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+            self.opt.zero_grad(set_to_none=True)
+            torch.cuda.synchronize()
+            return self(x)
+        # Capture records the step without running it: this batch's step is the first replay.
+        self.graph.replay()
+        return self.static_loss.clone()
+
+    def report(self):
+        return {"captured": self.graph is not None, "eager_steps": self.EAGER, "error": self.error}
 
 
 class BusySampler:
