@@ -1,7 +1,10 @@
 """What `scripts/gpu-check` measures, as one JSON (written again after each part, so a part that
-fails or runs out of time keeps the others): the worker's op check on CUDA, its frames/s, steps/s
-and GPU busy share recovering the pruned width-0.25 v5 at 256x192 and the full-size v5 at
-640x480, and, with 2 GPUs or more, DDP against one process."""
+fails or runs out of time keeps the others): the worker's op check on CUDA; its frames/s,
+steps/s and GPU busy share recovering the pruned width-0.25 v5 at 256x192 (each step eagerly,
+then captured as a CUDA graph, at batch 32 and 128) and the full-size v5 at 640x480 (captured
+and eager); and, with 2 GPUs or more, DDP against one process. Each recovery's time is capped,
+so the whole check stays within 8 minutes. Figures of 2026-11-27 on an H200:
+docs/results/pruning.md, "Recovery on a GPU"."""
 import datetime
 import json
 import os

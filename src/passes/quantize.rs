@@ -132,6 +132,11 @@ pub struct Qat {
     pub frames: usize,
     /// `cuda` or `cpu`; empty: CUDA when torch sees it.
     pub device: String,
+    /// Processes that train together, as `recover`'s `devices` (torchrun,
+    /// DistributedDataParallel: NCCL on GPUs, gloo on the CPU); `batch` must divide among them.
+    pub devices: usize,
+    /// On one GPU, the step captured once as a CUDA graph and replayed, as `recover`'s.
+    pub cuda_graph: bool,
     /// What the quantized model learns to reproduce: `float`, the quantize pass's input, or
     /// `original`, the model before an earlier `prune` (QAT then goes on recovering what
     /// pruning lost instead of stopping at the pruned float model's accuracy).
@@ -162,7 +167,7 @@ pub enum QatTeacher {
 
 impl Default for Qat {
     fn default() -> Self {
-        Qat { steps: 800, minutes: None, threads: 0, lr: 1e-4, batch: 8, frames: 0, device: String::new(), teacher: QatTeacher::Float, scales: false, scale_lr: 1.0, box_edges: None, class_foreground: None }
+        Qat { steps: 800, minutes: None, threads: 0, lr: 1e-4, batch: 8, frames: 0, device: String::new(), devices: 1, cuda_graph: true, teacher: QatTeacher::Float, scales: false, scale_lr: 1.0, box_edges: None, class_foreground: None }
     }
 }
 
@@ -198,6 +203,7 @@ impl Options {
         }
         if let Some(q) = &self.qat {
             crate::prune::recover::check_schedule("qat: ", q.steps, q.minutes, q.lr, q.batch)?;
+            crate::prune::recover::check_devices("qat: ", q.devices, q.batch)?;
             if !(q.scale_lr > 0.0 && q.scale_lr.is_finite()) {
                 bail!("qat: scale_lr must be a positive number");
             }
@@ -504,6 +510,7 @@ fn quantization_aware(float: &ModelProto, original: Option<&super::Teacher>, qua
         bail!("qat has {} calibration frames for batches of {}; raise calib_frames or lower qat's batch", frames.len(), q.batch);
     }
     let mut schedule = crate::quant::qat::schedule(q.steps, q.minutes, q.threads, q.lr, q.batch, o.seed, q.device.clone());
+    (schedule.devices, schedule.cuda_graph) = (q.devices, q.cuda_graph);
     let (teacher, view, heads) = match original {
         None => (float, None, crate::prune::recover::head_specs(float)?),
         Some(t) => {

@@ -61,6 +61,11 @@ pub struct Options {
     pub seed: u64,
     /// `cuda` or `cpu`; empty: CUDA when torch sees it.
     pub device: String,
+    /// Processes that train together, as `recover`'s `devices` (torchrun,
+    /// DistributedDataParallel: NCCL on GPUs, gloo on the CPU); `batch` must divide among them.
+    pub devices: usize,
+    /// On one GPU, the step captured once as a CUDA graph and replayed, as `recover`'s.
+    pub cuda_graph: bool,
 }
 
 impl Options {
@@ -70,13 +75,13 @@ impl Options {
         if self.frames < self.batch {
             bail!("rknn-qat has {} frames for batches of {}; raise frames or lower batch", self.frames, self.batch);
         }
-        Ok(())
+        crate::prune::recover::check_devices("", self.devices, self.batch)
     }
 }
 
 impl Default for Options {
     fn default() -> Self {
-        Options { steps: 800, minutes: None, threads: 0, lr: 1e-4, batch: 8, frames: 64, seed: 0, device: String::new() }
+        Options { steps: 800, minutes: None, threads: 0, lr: 1e-4, batch: 8, frames: 64, seed: 0, device: String::new(), devices: 1, cuda_graph: true }
     }
 }
 
@@ -159,7 +164,8 @@ impl Pass for RknnQat {
         let (quantized, dequantized) = at_points::emit(model, &params)?;
 
         let heads = crate::prune::recover::split_head_specs(model, &dequantized)?;
-        let schedule = qat::schedule(o.steps, o.minutes, o.threads, o.lr, o.batch, o.seed, o.device.clone());
+        let mut schedule = qat::schedule(o.steps, o.minutes, o.threads, o.lr, o.batch, o.seed, o.device.clone());
+        (schedule.devices, schedule.cuda_graph) = (o.devices, o.cuda_graph);
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         let student = Student { heads, scale_groups: Vec::new(), scale_lr: 1.0, weight_range: at_points::WEIGHT_RANGE, pin_extremes: true };
         let t = qat::train(&quantized, model, student, &frames, &held, &schedule, threads)?;
