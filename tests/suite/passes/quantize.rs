@@ -363,6 +363,8 @@ fn qat_on_two_gloo_ranks_trains_the_integers_of_one_process() {
         let out = dir.path().join(format!("d{devices}"));
         let qat = compile(TINY, &recipe, &out, &[])["qat"].clone();
         assert_eq!((qat["training"]["ranks"].as_u64(), qat["training"]["steps"].as_u64()), (Some(devices), Some(12)), "{qat}");
+        // Compared as written: were both refused, both would be the untrained model.
+        assert_eq!(qat["kept"], true, "{qat}");
         runs.push((load(&out.join("model.onnx")).graph.unwrap(), qat));
     }
     let (g1, g2) = (&runs[0].0, &runs[1].0);
