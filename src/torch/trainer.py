@@ -285,16 +285,10 @@ def train(cfg):
                     g["lr"] = g["base_lr"] * scale
             loss = run_step(x)
             step, seen, cnt = step + 1, seen + len(x) * WORLD, cnt + 1
-            if dev.type == "cuda":
-                # Summed on the device and read every 10 steps: a read per step waits for the GPU.
-                tot = tot + loss
-                if step % 10 == 0 or step == steps:
-                    emit({"event": "step", "step": step, "steps": steps, "loss": whole_batch(loss)})
-                continue
-            last = whole_batch(loss)
-            tot = tot + last
+            # On a GPU summed on the device (a read per step waits for it), read every 10 steps.
+            tot = tot + (loss if dev.type == "cuda" else whole_batch(loss))
             if step % 10 == 0 or step == steps:
-                emit({"event": "step", "step": step, "steps": steps, "loss": last})
+                emit({"event": "step", "step": step, "steps": steps, "loss": whole_batch(loss)})
         epoch += 1
         curve.append((whole_batch(tot) if torch.is_tensor(tot) else tot) / max(cnt, 1))
         emit({"event": "epoch", "epoch": epoch, "loss": curve[-1], "step": step, "steps": steps})
