@@ -7,7 +7,17 @@ const EXIT_ERROR: u8 = 2;
 const EXIT_QUALITY: u8 = 1;
 
 fn main() -> ExitCode {
-    let cli = pdi_compile::cli::Cli::parse();
+    let cli = match pdi_compile::cli::Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) if !e.use_stderr() => e.exit(), // --help, --version
+        Err(e) => {
+            // One line, like every other error: clap's first line, then where the usage is.
+            let text = e.render().to_string();
+            let first = text.lines().find(|l| !l.trim().is_empty()).unwrap_or("error: bad arguments");
+            eprintln!("{}; see --help", first.trim_end());
+            return ExitCode::from(EXIT_ERROR);
+        }
+    };
     // A panic is a bug, but the user still gets one line and exit 2, not a backtrace.
     std::panic::set_hook(Box::new(|_| {}));
     match std::panic::catch_unwind(|| pdi_compile::cli::run(cli)) {

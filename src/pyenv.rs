@@ -6,19 +6,14 @@ use anyhow::{anyhow, bail, Context, Result};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-/// What the toolkit needs beside itself (its own pins: newer torch, numpy, onnx or protobuf
-/// break its import or its ONNX loader). torch 2.4 and onnxruntime 1.19 also serve the
-/// recovery worker.
-const TOOLKIT_PINS: &[&str] = &[
-    "rknn-toolkit2==2.5.0",
-    "torch<=2.4",
-    "numpy<=1.26.4",
-    "onnx<=1.18",
-    "onnxruntime<=1.19",
-    "protobuf<=4.25.4",
-    "opencv-python-headless<4.11",
-];
+/// The toolkit venv's requirements (one file, which `scripts/setup --toolkit` installs too).
+const REQUIREMENTS: &str = include_str!("toolkit-requirements.txt");
 const STAMP: &str = ".installed-rknn-toolkit2-2.5.0";
+
+/// The pins of [`REQUIREMENTS`], comments and blank lines left out.
+fn requirements() -> impl Iterator<Item = &'static str> {
+    REQUIREMENTS.lines().map(str::trim).filter(|l| !l.is_empty() && !l.starts_with('#'))
+}
 
 /// The toolkit venv's Python, installing it on first use (`PDI_RKNN_PYTHON` overrides).
 pub fn toolkit_python() -> Result<PathBuf> {
@@ -43,7 +38,7 @@ pub fn toolkit_python() -> Result<PathBuf> {
         };
         run(Command::new(&base).args(["-m", "venv"]).arg(&venv), "creating the rknn-toolkit2 venv (it needs Python 3.11: install python3.11 or set PDI_RKNN_BASE_PYTHON)")?;
         let started = std::time::Instant::now();
-        let mut pip = Command::new(venv.join("bin/pip")).args(["install", "-q", "--disable-pip-version-check"]).args(TOOLKIT_PINS).spawn().context("pip install rknn-toolkit2==2.5.0: cannot start it")?;
+        let mut pip = Command::new(venv.join("bin/pip")).args(["install", "-q", "--disable-pip-version-check"]).args(requirements()).spawn().context("pip install rknn-toolkit2==2.5.0: cannot start it")?;
         // pip -q is silent for minutes: say that it is still working.
         let status = loop {
             if let Some(s) = pip.try_wait()? {
@@ -85,6 +80,7 @@ pub fn run_worker(dir: &Path, script: &str, args: &[&std::ffi::OsStr], ranks: us
     use std::io::{BufRead, BufReader};
     use std::process::Stdio;
     let python = torch_python()?;
+    let _turn = exclusive()?;
     let mut command = Command::new(&python);
     if ranks > 1 {
         command.args(["-m", "torch.distributed.run", "--standalone", "--nnodes", "1", "--nproc-per-node"]).arg(ranks.to_string());
@@ -115,6 +111,21 @@ pub fn run_worker(dir: &Path, script: &str, args: &[&std::ffi::OsStr], ranks: us
     }
 }
 
+/// With `PDI_WORKER_LOCK` naming a file, the Python workers that take every core (trainings,
+/// the toolkit) run one at a time across all the processes naming it: two trainings on the
+/// same cores slow each other several-fold (a QAT test: 38 s alone, 421 s beside another). The
+/// turn ends when the returned file is dropped; without the variable there is no lock.
+pub fn exclusive() -> Result<Option<std::fs::File>> {
+    let Some(path) = std::env::var_os("PDI_WORKER_LOCK") else { return Ok(None) };
+    let file = std::fs::OpenOptions::new().create(true).truncate(false).write(true).open(&path).with_context(|| format!("PDI_WORKER_LOCK: cannot open {}", Path::new(&path).display()))?;
+    use std::os::fd::AsRawFd;
+    // SAFETY: flock on a descriptor this function owns; it blocks until the turn comes.
+    if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX) } != 0 {
+        bail!("PDI_WORKER_LOCK: cannot lock {}: {}", Path::new(&path).display(), std::io::Error::last_os_error());
+    }
+    Ok(Some(file))
+}
+
 /// Bytes under `dir` (files only; links not followed).
 fn dir_bytes(dir: &Path) -> u64 {
     let mut total = 0;
@@ -131,9 +142,12 @@ fn dir_bytes(dir: &Path) -> u64 {
     total
 }
 
-fn cache() -> Result<PathBuf> {
-    std::env::var_os("PDI_CACHE")
-        .map(PathBuf::from)
-        .or_else(|| std::env::var_os("HOME").map(|h| Path::new(&h).join(".cache/pdi-compile")))
+/// The cache folder, as `scripts/setup` chooses it: `PDI_CACHE`, else `pdi-compile` in
+/// `XDG_CACHE_HOME` or `~/.cache`.
+pub fn cache() -> Result<PathBuf> {
+    let set = |k: &str| std::env::var_os(k).filter(|v| !v.is_empty()).map(PathBuf::from);
+    set("PDI_CACHE")
+        .or_else(|| set("XDG_CACHE_HOME").map(|c| c.join("pdi-compile")))
+        .or_else(|| set("HOME").map(|h| h.join(".cache/pdi-compile")))
         .ok_or_else(|| anyhow!("set PDI_CACHE or HOME: Python environments are installed into a cache folder"))
 }

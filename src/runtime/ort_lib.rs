@@ -10,9 +10,16 @@ use std::sync::OnceLock;
 pub const ORT_VERSION: &str = "1.31.1";
 const FIX: &str = "run `scripts/setup` (installs onnxruntime==1.31.1 into the cache) or set PDI_ORT_LIB to libonnxruntime.so";
 
-/// `PDI_ORT_LIB` if set, else the library inside the `onnxruntime` package that `python3` imports.
+/// `PDI_ORT_LIB` if set, else the library inside the `onnxruntime` package of `PDI_PYTHON`, of
+/// the cache's Python (where `scripts/setup`, and so the demo and the tests, install it), or of
+/// `python3`.
 pub fn locate() -> Result<PathBuf> {
-    let python = std::env::var("PDI_PYTHON").unwrap_or_else(|_| "python3".into());
+    let cached = crate::pyenv::cache().ok().map(|c| c.join("pyenv/bin/python")).filter(|p| p.is_file());
+    let python = match (std::env::var("PDI_PYTHON"), cached) {
+        (Ok(p), _) => p,
+        (Err(_), Some(p)) => p.to_string_lossy().into_owned(),
+        (Err(_), None) => "python3".into(),
+    };
     locate_with(std::env::var_os("PDI_ORT_LIB"), &python)
 }
 

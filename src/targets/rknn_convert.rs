@@ -133,6 +133,7 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
     eprintln!("rknn-convert: building {} with rknn-toolkit2 and simulating {} frames", dir.join("model.rknn").display(), set.frames.len());
     let log_path = dir.join("rknn_build.log");
     let log = std::fs::File::create(&log_path)?;
+    let _turn = crate::pyenv::exclusive()?;
     let status = Command::new(&python).arg(&worker).arg(&job_path).current_dir(work.path()).stdout(log.try_clone()?).stderr(log).status().with_context(|| format!("cannot run {}", python.display()))?;
     let log = String::from_utf8_lossy(&std::fs::read(&log_path)?).into_owned();
     if !status.success() {

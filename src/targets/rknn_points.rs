@@ -76,6 +76,7 @@ pub fn toolkit_points(model: &ModelProto, frames: &[Tensor], outputs: &[String])
     });
     std::fs::write(work.path().join("job.json"), serde_json::to_vec(&job)?)?;
     std::fs::write(work.path().join("rknn_worker.py"), super::rknn_convert::WORKER)?;
+    let _turn = crate::pyenv::exclusive()?;
     let out = Command::new(&python).arg("rknn_worker.py").arg("job.json").current_dir(work.path()).output().with_context(|| format!("cannot run {}", python.display()))?;
     if !out.status.success() {
         let log = String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr);

@@ -383,3 +383,17 @@ fn a_killed_compile_leaves_the_folder_as_it_was() {
     assert!(names.iter().all(|n| !n.contains("pdi-partial") || n.contains("fresh")), "{names:?}");
     assert!(!out.join("tract.yaml").exists() && out.join("model.onnx").exists());
 }
+
+/// A mistyped flag, a missing argument or an unknown command: clap's first line and where the
+/// usage is, one line and exit 2, as for every other bad input; `--help` still prints the usage.
+#[test]
+fn argument_errors_are_one_line() {
+    for (args, needle) in [(vec!["compile", "x.onnx", "--pipline", "p.yaml"], "--pipline"), (vec!["compile"], "required"), (vec!["compiel"], "compiel")] {
+        let r = cli(&args);
+        assert_eq!(r.code, 2, "{args:?}: {}", r.stderr);
+        assert!(r.stderr.starts_with("error: ") && r.stderr.contains(needle) && r.stderr.trim_end().lines().count() == 1, "{args:?}:\n{}", r.stderr);
+    }
+    let r = cli(&["compile", "--help"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    assert!(r.stdout.contains("Usage:"), "{}", r.stdout);
+}

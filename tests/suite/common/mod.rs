@@ -59,7 +59,9 @@ pub struct CliResult {
 }
 
 pub fn cli(args: &[&str]) -> CliResult {
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_pdi-compile")).args(args).current_dir(repo()).output().unwrap();
+    // On the CPU: the claims about training (the same bytes, one process against ranks) are
+    // the CPU's; a GPU's kernels are not deterministic.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_pdi-compile")).args(args).current_dir(repo()).env("CUDA_VISIBLE_DEVICES", "").output().unwrap();
     CliResult {
         code: out.status.code().unwrap_or(-1),
         stdout: String::from_utf8_lossy(&out.stdout).into_owned(),
