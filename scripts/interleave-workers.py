@@ -1,5 +1,5 @@
 """Two versions of the recovery worker on one job, interleaved: frames/s of each, and whether
-they trained the same bytes (issue 50's CPU line).
+they trained the same bytes (a CPU check of a worker change).
 
   scripts/interleave-workers.py JOB STEPS ROUNDS
 

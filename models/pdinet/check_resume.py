@@ -1,7 +1,7 @@
 """Checks that training survives interruption: a short run killed (SIGKILL) in the middle of an
 epoch and resumed with --resume logs the same per-epoch losses as an uninterrupted run.
 
-  python pdinet/check_resume.py --data /tmp/pdi-train --psf ../calib/single_lwir_blur.npy [--device cpu]
+  python pdinet/check_resume.py --data out/pdi-train --psf ../calib/single_lwir_blur.npy [--device cpu]
 
 Prints one JSON line (the largest relative difference of any logged loss, where the kill
 landed) and exits 1 when a loss differs by more than --tolerance (float noise: the GPU's and

@@ -1,10 +1,12 @@
 """mAP of an exported PDI-Net ONNX on a labelled frame folder, with ONNX Runtime and pycocotools.
 
-Decode and NMS match `pdi-compile verify` (score = objectness x best class for YOLOv5, best
-class for YOLOv8; conf 0.001, class-aware NMS at IoU 0.6, 300 detections), so both tools report
-the same numbers. The head comes from the model's `pdinet.head` metadata.
+Decode and NMS match `pdi-compile verify` and `run` (score = objectness x best class for
+YOLOv5, best class for YOLOv8; conf 0.001, class-aware NMS at ultralytics' validation IoU, 0.6
+for YOLOv5 and 0.7 for YOLOv8, 300 detections), so the tools report the same numbers; written
+in numpy apart from the Rust code, it is what the test suite checks `run`'s detections against.
+The head comes from the model's `pdinet.head` metadata.
 
-  python pdinet/evaluate.py --model trained/pdinet_v5_tiny_trained.onnx --data /tmp/pdi-eval-256/degraded --psf ../calib/single_lwir_blur.npy
+  python pdinet/evaluate.py --model trained/pdinet_v5_tiny_trained.onnx --data out/pdi-eval-256/degraded --psf ../calib/single_lwir_blur.npy
 """
 import argparse
 import json
@@ -25,9 +27,12 @@ def main():
     ap.add_argument("--model", required=True)
     ap.add_argument("--data", required=True, help="folder of 16-bit PNG frames with YOLO .txt labels")
     ap.add_argument("--psf", help="blur map .npy for models that take psf_blur as an input")
+    ap.add_argument("--iou", type=float, help="NMS IoU (default: 0.7 for YOLOv8, 0.6 for YOLOv5)")
+    ap.add_argument("--detections", help="also write the detections here (COCO results, xywh, with file_name)")
     a = ap.parse_args()
     s = ort.InferenceSession(a.model, providers=["CPUExecutionProvider"])
     head = s.get_modelmeta().custom_metadata_map.get("pdinet.head", "v5")
+    iou = a.iou if a.iou is not None else (0.7 if head == "v8" else 0.6)
     names = [i.name for i in s.get_inputs()]
     files = sorted(f for f in os.listdir(a.data) if f.endswith(".png"))
     images, anns, dets = [], [], []
@@ -42,9 +47,15 @@ def main():
         lp = os.path.join(a.data, f[:-4] + ".txt")
         labels = np.loadtxt(lp, ndmin=2) if os.path.getsize(lp) else np.zeros((0, 5))
         xyxy, score, cls = candidates(out, head)
-        coco_entries(idx, w, h, labels, xyxy, score, cls, nms_numpy(xyxy, score, cls), anns, dets)
+        first = len(dets)
+        coco_entries(idx, w, h, labels, xyxy, score, cls, nms_numpy(xyxy, score, cls, iou), anns, dets)
+        for d in dets[first:]:
+            d["file_name"] = f
     m50, m5095 = coco_map(images, anns, dets)
-    print(json.dumps({"model": os.path.basename(a.model), "head": head, "frames": len(files), "objects": len(anns), "map50": round(m50, 4), "map50_95": round(m5095, 4)}))
+    if a.detections:
+        with open(a.detections, "w") as out:
+            json.dump(dets, out)
+    print(json.dumps({"model": os.path.basename(a.model), "head": head, "iou": iou, "frames": len(files), "objects": len(anns), "map50": round(m50, 4), "map50_95": round(m5095, 4)}))
 
 if __name__ == "__main__":
     main()

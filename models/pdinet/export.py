@@ -5,9 +5,9 @@ Random-weight models get realistic BatchNorm statistics: forward passes in train
 synthetic thermal frames before export, so activations are never degenerate.
 
   python -m pdinet.export --out fixtures --width 0.0625 --size 256x192
-  python -m pdinet.export --out /tmp/full --width 1.0 --size 640x480 --head v5 --psf input --opset 17
+  python -m pdinet.export --out out/full --width 1.0 --size 640x480 --head v5 --psf input --opset 17
 
-Exports as other users make them (issue 19's fixtures), each on top of the variants above:
+Exports as other users make them (the fixtures of models/fixtures/exports), each on top of the variants above:
   --detection-only   only the detection output (the reconstruction decoder never exported)
   --channels 3       thermal frames stored as RGB (the first convolution takes 3 channels)
   --constant-weights every initializer moved into a Constant node (Paddle / TensorFlow style)

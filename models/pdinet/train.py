@@ -13,7 +13,7 @@ after every epoch, and `--resume` continues from it. Each epoch's order and flip
 generator seeded by (seed, epoch), so a resumed run sees the same batches as an uninterrupted
 one. `--device auto` trains on a CUDA GPU when one is present.
 
-  python pdinet/train.py --head v8 --width 0.25 --data /tmp/pdi-train --eval /tmp/pdi-eval --out out --epochs 60
+  python pdinet/train.py --head v8 --width 0.25 --data out/pdi-train --eval out/pdi-eval --out out --epochs 60
 """
 import argparse
 import json
@@ -58,13 +58,15 @@ def load_split(root, size, limit=None):
     return np.stack(raw)[:, None], np.stack(gt)[:, None], labels
 
 
-def nms(xyxy, score, cls):
-    """Class-aware NMS at IoU 0.6, 300 boxes: torchvision's when installed (fast), else ours."""
+def nms(xyxy, score, cls, head):
+    """Class-aware NMS at the head's validation IoU (0.7 YOLOv8, 0.6 YOLOv5, as `pdi-compile
+    verify` and evaluate.py), 300 boxes: torchvision's when installed (fast), else ours."""
+    iou = 0.7 if head == "v8" else 0.6
     try:
         from torchvision.ops import batched_nms
     except ImportError:
-        return nms_numpy(xyxy, score, cls)
-    keep = batched_nms(torch.from_numpy(xyxy), torch.from_numpy(score), torch.from_numpy(cls), 0.6)
+        return nms_numpy(xyxy, score, cls, iou)
+    keep = batched_nms(torch.from_numpy(xyxy), torch.from_numpy(score), torch.from_numpy(cls), iou)
     return keep[:300].numpy()
 
 
@@ -81,7 +83,7 @@ def evaluate(model, raw, labels, psf, size, head):
                 idx = i0 + k
                 images.append({"id": idx + 1, "width": w, "height": h})
                 xyxy, score, cls = candidates(o, head)
-                coco_entries(idx, w, h, labels[idx], xyxy, score, cls, nms(xyxy, score, cls), anns, dets)
+                coco_entries(idx, w, h, labels[idx], xyxy, score, cls, nms(xyxy, score, cls, head), anns, dets)
     model.train()
     return coco_map(images, anns, dets)
 

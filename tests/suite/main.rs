@@ -19,6 +19,7 @@ mod passes;
 mod physics_cli;
 mod proto_roundtrip;
 mod recipes;
+mod records;
 mod reference;
 mod roundtrip_fixtures;
 mod run;

@@ -2,9 +2,6 @@
 //! every head the toolchain emits, in the camera frame's coordinates, drawn where they are.
 
 use crate::common::*;
-use pdi_compile::deploy::input::{blur_input, ModelInput};
-use pdi_compile::detect::{decode, nms::nms};
-use pdi_compile::runtime::{self, Engine};
 use serde_json::Value;
 use std::path::Path;
 
@@ -68,7 +65,7 @@ fn coco_results(path: &Path) -> Vec<Found> {
 }
 
 #[test]
-fn run_detects_what_verify_decodes_and_scores_the_same_map() {
+fn run_detects_what_an_independent_decoder_finds_and_scores_the_same_map() {
     let dir = tempfile::tempdir().unwrap();
     let data = eval_set(dir.path());
     let out = dir.path().join("run");
@@ -76,29 +73,25 @@ fn run_detects_what_verify_decodes_and_scores_the_same_map() {
     assert_eq!(r["frames"], 200);
     assert_eq!(r["labelled_frames"], 200);
 
-    // verify's decode, frame by frame: ONNX Runtime, in-graph head, conf 0.001, its NMS.
-    let model = load(&repo().join(V5));
-    let input = ModelInput::of(&model, "model").unwrap();
-    let blur = blur_input(&repo().join(PSF)).unwrap();
-    let head = pdi_compile::inspect::inspect(&model).unwrap().head;
-    let frames = pdi_compile::frames::load_folder(&data, input.shape.0, input.shape.1).unwrap();
-    let feed = |f: &pdi_compile::frames::Frame| -> Vec<(String, pdi_compile::tensor::Tensor)> {
-        let mut v = vec![(input.image_input.clone(), f.image.clone())];
-        v.extend(input.other_inputs.iter().map(|n| (n.clone(), blur.clone())));
-        v
-    };
-    let mut rt = runtime::load(Engine::Ort, &model, &feed(&frames[0]), 2).unwrap();
-    let got = boxes(&out.join("detections.json"), frames.len());
+    // An independent decoder: models/pdinet/evaluate.py (numpy decode and NMS, Python's ONNX
+    // Runtime, PIL's PNG reader) on the same frames, at conf 0.001 and the head's IoU.
+    let python = std::env::var("PDI_PYTHON").expect("PDI_PYTHON is not set: run the suite with scripts/test, which installs onnxruntime and pycocotools");
+    let theirs = dir.path().join("evaluate.json");
+    let e = std::process::Command::new(python)
+        .current_dir(repo())
+        .args(["models/pdinet/evaluate.py", "--model", V5, "--data", data.to_str().unwrap(), "--psf", PSF, "--detections", theirs.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(e.status.success(), "evaluate.py: {}", String::from_utf8_lossy(&e.stderr));
+    let summary: Value = serde_json::from_slice(&e.stdout).unwrap();
+    let (got, expected) = (boxes(&out.join("detections.json"), 200), boxes(&theirs, 200));
     let mut compared = 0;
-    for (i, f) in frames.iter().enumerate() {
-        let outs = rt.run(&feed(f)).unwrap();
-        let t = &outs.iter().find(|(n, _)| Some(n) == head.output.as_ref()).unwrap().1;
-        let expected = nms(decode::candidates(head.kind, t, 0.001).unwrap(), 0.6, 300);
-        assert_eq!(got[i].len(), expected.len(), "frame {i}: detection count");
-        for ((b, s, c), e) in got[i].iter().zip(&expected) {
-            assert_eq!(*c, e.class, "frame {i}");
-            assert!((s - e.score).abs() <= 1e-5, "frame {i}: score {s} against {}", e.score);
-            assert!(b.iter().zip(&e.bbox).all(|(x, y)| (x - y).abs() <= 1e-5 * y.abs().max(1.0)), "frame {i}: box {b:?} against {:?}", e.bbox);
+    for (i, (got, expected)) in got.iter().zip(&expected).enumerate() {
+        assert_eq!(got.len(), expected.len(), "frame {i}: detection count");
+        for ((b, s, c), (eb, es, ec)) in got.iter().zip(expected) {
+            assert_eq!(c + 1, *ec, "frame {i}: class (evaluate.py numbers COCO categories from 1)");
+            assert!((s - es).abs() <= 1e-5, "frame {i}: score {s} against {es}");
+            assert!(b.iter().zip(eb).all(|(x, y)| (x - y).abs() <= 1e-4 * y.abs().max(1.0)), "frame {i}: box {b:?} against {eb:?}");
             compared += 1;
         }
     }
@@ -109,6 +102,8 @@ fn run_detects_what_verify_decodes_and_scores_the_same_map() {
     let v: Value = serde_json::from_str(&v.stdout).unwrap();
     let (ours, theirs) = (map50_95(&r["map_labels"]), map50_95(&v["detection"]["candidate_vs_labels"]));
     assert!((ours - theirs).abs() < 1e-12, "run's mAP {ours} against verify's {theirs}");
+    let python_map = summary["map50_95"].as_f64().unwrap();
+    assert!((ours - python_map).abs() <= 5e-5, "run's mAP {ours} against evaluate.py's (pycocotools) {python_map}");
     assert!(ours > 0.5, "the trained model detects: mAP {ours}");
     // The stages are measured and add up to the frame rate.
     let l = &r["latency"];

@@ -74,10 +74,10 @@ fn the_preview_measures_what_the_roi_owes_to_the_outside() {
         let (a, boxes) = (c["agreement"].as_f64().unwrap(), c["reference_boxes"].as_u64().unwrap());
         println!("{m}: ROI detections with the outside swapped agree {a:.4} ({boxes} boxes)");
         assert!(boxes >= 20, "{m}: {c}");
-        assert!((0.0..=1.0).contains(&a), "{m}: {c}");
         agreement.push(a);
     }
-    assert!(agreement[0] < 0.98 && agreement[0] < agreement[1], "tiny {} against v8 {}", agreement[0], agreement[1]);
+    // Measured on these simulated frames: tiny 0.677, v8 0.996 (docs/results/scene.md).
+    assert!(agreement[0] < 0.9 && agreement[1] >= 0.95, "tiny {} (owes much to the outside), v8 {} (little)", agreement[0], agreement[1]);
 
     let out = dir.path().join("tiny");
     compile(&repo().join("models/trained").join(MODELS[0]), "passes/detect-f32.yaml", None, &out);

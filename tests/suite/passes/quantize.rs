@@ -359,7 +359,7 @@ fn qat_on_two_gloo_ranks_trains_the_integers_of_one_process() {
     let fast = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 32");
     let mut runs = Vec::new();
     for devices in [1, 2] {
-        let recipe = variant(dir.path(), &fast, "error_budget: 0.1", &format!("error_budget: 10.0, qat: {{steps: 12, lr: 2.0e-3, batch: 8, frames: 48, threads: {devices}, devices: {devices}}}"));
+        let recipe = variant(dir.path(), &fast, "error_budget: 0.1", &format!("error_budget: 10.0, qat: {{steps: 12, lr: 1.0e-3, batch: 8, frames: 48, threads: {devices}, devices: {devices}}}"));
         let out = dir.path().join(format!("d{devices}"));
         let qat = compile(TINY, &recipe, &out, &[])["qat"].clone();
         assert_eq!((qat["training"]["ranks"].as_u64(), qat["training"]["steps"].as_u64()), (Some(devices), Some(12)), "{qat}");

@@ -251,7 +251,12 @@ fn the_full_size_model_recovers_end_to_end_on_the_cpu() {
     // 8 asked for plus the draw that holds out a quarter for the rule: all in memory, far
     // under the pass's 1 GiB of pixels (which caps a larger ask, with a warning).
     assert!(frames >= 8 && frames * 640 * 480 * 4 <= 1 << 30, "{frames} training frames held");
-    assert!(r["kept"].is_boolean(), "the held-out rule decided: {r}");
+    // The held-out rule's decision follows from the errors it reports: kept exactly when the
+    // worst output group got closer to the unpruned model (two steps may go either way).
+    let worst = |m: &serde_json::Value| m.as_object().unwrap().iter().filter(|(k, _)| k.contains('/')).map(|(_, v)| v.as_f64().unwrap()).fold(0.0, f64::max);
+    let (before, after) = (worst(&r["output_rel_l2"]["before"]), worst(&r["output_rel_l2"]["after"]));
+    assert!(before.is_finite() && after.is_finite() && before > 0.0, "{r}");
+    assert_eq!(r["kept"], after < before, "kept must say whether the worst group improved ({before} -> {after}): {r}");
     let macs = |k: &str| report[k]["macs"].as_f64().unwrap();
     assert!(macs("after") < 0.5 * macs("before"), "pruned: {} of {} MACs", macs("after"), macs("before"));
 }
