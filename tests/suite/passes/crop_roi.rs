@@ -110,7 +110,7 @@ fn training_the_estimates_alone_brings_the_crop_closer() {
     // Fitted closed loop (each estimate on the crop's own values), the start training wants.
     let crop = "{crop-roi: {closed_loop: true}}";
     let fitted = write(dir.path(), "fitted.yaml", &format!("name: fitted\npasses: [{LOSSLESS}, {crop}, cleanup]\n"));
-    let trained = write(dir.path(), "trained.yaml", &format!("name: trained\npasses: [{LOSSLESS}, {crop}, {{recover: {{train: estimates, steps: 240, frames: 96, batch: 8, lr: 0.003}}}}, cleanup]\n"));
+    let trained = write(dir.path(), "trained.yaml", &format!("name: trained\npasses: [{LOSSLESS}, {crop}, {{recover: {{train: estimates, steps: 96, frames: 96, batch: 8, lr: 0.003}}}}, cleanup]\n"));
     let model = repo().join("models/trained").join(MODELS[0]);
     let (full, a, b) = (dir.path().join("full"), dir.path().join("fitted"), dir.path().join("trained"));
     compile(&model, "passes/detect-f32.yaml", None, &full);
