@@ -6,7 +6,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-/// The toolkit venv's requirements (one file, which `scripts/setup --toolkit` installs too).
+/// The toolkit venv's requirements (one file, which `scripts/setup-toolkit` installs too).
 const REQUIREMENTS: &str = include_str!("toolkit-requirements.txt");
 const STAMP: &str = ".installed-rknn-toolkit2-2.5.0";
 

@@ -133,3 +133,28 @@ fn labelled_frames_give_map_against_labels() {
     assert!(a["map50"].is_number() && b["map50"].is_number(), "{}", j["detection"]);
     assert!((a["map50_95"].as_f64().unwrap() - b["map50_95"].as_f64().unwrap()).abs() < 1e-3);
 }
+
+/// After `scripts/setup` (the demo, the tests) a bare `pdi-compile` finds ONNX Runtime in the
+/// cache, with neither `PDI_ORT_LIB` nor `PDI_PYTHON` set; with no cache (and no `python3` with onnxruntime) it says how to set up.
+#[test]
+fn a_bare_binary_finds_onnx_runtime_in_the_cache() {
+    let cache = std::env::var("PDI_CACHE").expect("PDI_CACHE is not set: run the suite with scripts/test, which installs ONNX Runtime into the cache");
+    let run = |cache: &str, path: &str| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_pdi-compile"))
+            .args(["verify", "--reference", "models/trained/pdinet_v5_tiny_trained.onnx", "--candidate", "models/trained/pdinet_v5_tiny_trained.onnx", "--psf", "calib/single_lwir_blur.npy", "--random", "1", "--runs", "0", "--no-tract"])
+            .current_dir(repo())
+            .env_remove("PDI_ORT_LIB")
+            .env_remove("PDI_PYTHON")
+            .env("PDI_CACHE", cache)
+            .env("PATH", path)
+            .output()
+            .unwrap()
+    };
+    let found = run(&cache, &std::env::var("PATH").unwrap_or_default());
+    assert!(found.status.success(), "{}", String::from_utf8_lossy(&found.stderr));
+    // No cache and no python3 to ask either.
+    let missing = run("/nonexistent-pdi-cache", "/nonexistent-bin");
+    let stderr = String::from_utf8_lossy(&missing.stderr);
+    assert_eq!(missing.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("scripts/setup") && stderr.trim().lines().count() == 1, "{stderr}");
+}
