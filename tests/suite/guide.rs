@@ -75,11 +75,16 @@ fn shorten(text: &str) -> String {
     out
 }
 
+/// `PATH` with the built `pdi-compile` first, as a reader's shell would find it.
+fn path_with_the_binary() -> String {
+    let bin = Path::new(env!("CARGO_BIN_EXE_pdi-compile")).parent().unwrap().to_path_buf();
+    format!("{}:{}", bin.display(), std::env::var("PATH").unwrap_or_default())
+}
+
 /// Runs `pages` in order in one scratch folder; each block must exit 0.
 fn run_pages(pages: &[&str]) {
     let dir = scratch();
-    let bin = Path::new(env!("CARGO_BIN_EXE_pdi-compile")).parent().unwrap().to_path_buf();
-    let path = format!("{}:{}", bin.display(), std::env::var("PATH").unwrap_or_default());
+    let path = path_with_the_binary();
     for page in pages {
         let bs = blocks(page);
         assert!(!bs.is_empty(), "{page} has no sh block");
@@ -89,10 +94,10 @@ fn run_pages(pages: &[&str]) {
             let tail = |v: &[u8]| String::from_utf8_lossy(v).lines().rev().take(15).collect::<Vec<_>>().into_iter().rev().collect::<Vec<_>>().join("\n");
             assert!(out.status.success(), "docs/guide/{page}: block\n{b}exited {:?}\nstdout:\n{}\nstderr:\n{}", out.status.code(), tail(&out.stdout), tail(&out.stderr));
             for (command, written, expected) in promised(&b) {
+                assert!(dir.path().join(&written).exists(), "docs/guide/{page}: `pdi-compile {command} ... -o {written}` wrote nothing");
                 for f in expected {
                     assert!(dir.path().join(&written).join(f).exists(), "docs/guide/{page}: `pdi-compile {command} ... -o {written}` wrote no {f}");
                 }
-                assert!(dir.path().join(&written).exists(), "docs/guide/{page}: `pdi-compile {command} ... -o {written}` wrote nothing");
             }
             println!("docs/guide/{page}: {:.1} s for\n{b}", t.elapsed().as_secs_f64());
         }
@@ -231,8 +236,7 @@ fn a_quote_matches_what_it_quotes_and_nothing_else() {
 #[test]
 fn the_messages_the_guide_quotes_are_what_the_tool_prints() {
     let dir = scratch();
-    let bin = Path::new(env!("CARGO_BIN_EXE_pdi-compile")).parent().unwrap().to_path_buf();
-    let path = format!("{}:{}", bin.display(), std::env::var("PATH").unwrap_or_default());
+    let path = path_with_the_binary();
     let python = std::env::var("PDI_PYTHON").expect("PDI_PYTHON is not set: run the suite with scripts/test, which installs onnx and pillow");
     let tiny = "models/trained/pdinet_v5_tiny_trained.onnx";
     let psf = "--psf calib/single_lwir_blur.npy";
