@@ -1,0 +1,326 @@
+"""The results runner: every figure the README and docs/results/ show, measured again.
+
+Each experiment runs the release binary on the shipped recipes and trained models and writes
+docs/results/records/NAME.json: the commit, the date, the machine, every command with its
+duration, and the figures. `render` turns the records into the README's results table and the
+record blocks of the docs/results pages (between `<!-- record NAME -->` and
+`<!-- /record NAME -->`); `check` fails when a committed page differs from its rendering.
+
+    results.py run [--quick | --full] [--only NAME ...]    measure, then render
+    results.py render | check
+
+Run it through scripts/results, which installs what it needs and builds the binary.
+"""
+import argparse
+import datetime
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+RECORDS = Path("docs/results/records")
+BIN = "target/release/pdi-compile"
+WORK = Path("target/results")
+EVAL = "target/eval-256x192/degraded"  # scripts/eval-set's frames, linked under target/
+PSF = "calib/single_lwir_blur.npy"
+MODELS = {
+    "v5 tiny": "models/trained/pdinet_v5_tiny_trained.onnx",
+    "v5 w0.25": "models/trained/pdinet_v5_w0.25_trained.onnx",
+    "v8 w0.25": "models/trained/pdinet_v8_w0.25_trained.onnx",
+}
+
+
+def slug(model):
+    return model.replace(" ", "-")
+
+
+class Failed(Exception):
+    pass
+
+
+class Ctx:
+    """One experiment's commands, run from the repository root and logged with their times."""
+
+    def __init__(self, name, env=None):
+        self.name = name
+        self.dir = WORK / name
+        self.extra = env or {}
+        self.env = dict(os.environ, **self.extra)
+        self.commands = []
+        shutil.rmtree(self.dir, ignore_errors=True)
+        self.dir.mkdir(parents=True)
+
+    def run(self, args, ok=(0,), env=None):
+        """Runs a command; returns (exit code, stdout and stderr interleaved as they came)."""
+        line = " ".join(str(a) for a in args)
+        prefix = " ".join(f"{k}={v}" for k, v in dict(self.extra, **(env or {})).items())
+        shown = f"{prefix} {line}".strip()
+        print(f"results: {self.name}: {shown}", file=sys.stderr, flush=True)
+        t = time.monotonic()
+        p = subprocess.run([str(a) for a in args], cwd=ROOT, env=dict(self.env, **(env or {})),
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        seconds = time.monotonic() - t
+        (self.dir / f"log{len(self.commands)}.txt").write_text(f"$ {shown}\n{p.stdout}")
+        self.commands.append({"command": shown, "seconds": round(seconds, 1), "exit": p.returncode})
+        if p.returncode not in ok:
+            tail = "\n".join(p.stdout.splitlines()[-15:])
+            raise Failed(f"{shown}: exit {p.returncode}\n{tail}")
+        return p.returncode, p.stdout
+
+    def json(self, args, **kw):
+        code, out = self.run(list(args) + ["--json"], **kw)
+        start = out.index("{")  # warnings on stderr come first
+        return json.loads(out[start:]), code
+
+
+def report(folder):
+    return json.loads((ROOT / folder / "report.json").read_text())
+
+
+def pass_of(rep, name):
+    return next(p for p in rep["passes"] if p["pass"] == name)
+
+
+def verify(ctx, reference, candidate):
+    v, _ = ctx.json([BIN, "verify", "--reference", reference, "--candidate", candidate,
+                     "--data", EVAL, "--psf", PSF, "--runs", 0])
+    d = v["detection"]
+    return {
+        "map_reference": d["reference_vs_labels"]["map50_95"],
+        "map": d["candidate_vs_labels"]["map50_95"],
+        "agreement": d["agreement"]["map50_95"],
+        "rel_l2": max(o["ort"]["rel_l2"] for o in v["outputs"]),
+        "frames": v["frames"],
+    }
+
+
+def compile_(ctx, model, recipe, out, *extra):
+    ctx.run([BIN, "compile", model, "--pipeline", recipe, "--psf", PSF, "-o", out, *extra])
+    return report(out)
+
+
+# --- quick tier ------------------------------------------------------------------------------
+
+def lossless(ctx):
+    rows = []
+    for m, path in MODELS.items():
+        out = ctx.dir / slug(m)
+        rep = compile_(ctx, path, "passes/detect-f32.yaml", out)
+        rows.append({"model": m, "macs_original": rep["before"]["macs"], "macs": rep["after"]["macs"],
+                     **verify(ctx, path, out / "model.onnx")})
+    return {"models": rows}
+
+
+def int8(ctx):
+    rows = []
+    for m, path in MODELS.items():
+        out = ctx.dir / slug(m)
+        rep = compile_(ctx, path, "passes/detect-int8.yaml", out)
+        missed = [w for w in rep["warnings"] if "missed its error budget" in w]
+        rows.append({"model": m, "missed_budget": bool(missed), **verify(ctx, path, out / "model.onnx")})
+    return {"models": rows}
+
+
+def demo(ctx):
+    t = time.monotonic()
+    _, screen = ctx.run(["scripts/demo"])
+    ship = json.loads((ROOT / "target/demo/ship.json").read_text())
+    keep = ("name", "bytes", "macs", "params", "ort_ms", "tract_ms", "map_labels", "agreement", "agreement_tract")
+    return {
+        "seconds": round(time.monotonic() - t, 1),
+        "recover_steps": 800,
+        "variants": [{k: v.get(k) for k in keep} for v in ship["variants"]],
+        "recommended": [{"target": r["target"], "variant": r["variant"]} for r in ship["recommended"]],
+        # The screen, as it came, without the lines that only say how long cargo took.
+        "screen": [l for l in screen.splitlines() if not l.startswith(("   Compiling", "    Finished"))],
+    }
+
+
+def run(ctx):
+    rows = []
+    for engine in ("ort", "tract"):
+        r, _ = ctx.json([BIN, "run", "target/demo/pruned-f32", "--engine", engine, "--frames", EVAL,
+                         "-o", ctx.dir / engine])
+        lat = r["latency"]
+        rows.append({"engine": engine, "threads": r["threads"], "frames_per_second": lat["frames_per_second"],
+                     "preprocess_ms": lat["preprocess"]["median_ms"], "inference_ms": lat["inference"]["median_ms"],
+                     "decode_nms_ms": lat["decode_nms"]["median_ms"], "map": r["map_labels"]["map50_95"],
+                     "frames": r["frames"]})
+    return {"artifact": "the demo's pruned-f32 (800 recovery steps)", "engines": rows}
+
+
+def rknn(ctx):
+    r, _ = ctx.json([BIN, "rknn-convert", "target/demo/rknn", "--data", EVAL])
+    return {"artifact": "the demo's rknn folder (800 recovery steps)", "report": r}
+
+
+def scene(ctx):
+    model = MODELS["v5 w0.25"]
+    roi = ctx.dir / "roi.yaml"
+    roi.write_text("roi: {x: 0, y: 64, w: 256, h: 128}\n")
+    ref = compile_(ctx, model, "passes/detect-f32.yaml", ctx.dir / "reference")
+    cand = compile_(ctx, model, "passes/detect-f32.yaml", ctx.dir / "roi", "--scene", roi)
+    v = verify(ctx, ctx.dir / "reference/model.onnx", ctx.dir / "roi/model.onnx")
+    return {"model": "v5 w0.25", "roi": "x 0, y 64, 256x128 of 256x192",
+            "macs_ratio": cand["after"]["macs"] / ref["after"]["macs"],
+            "params_ratio": cand["after"]["params"] / ref["after"]["params"], "agreement": v["agreement"]}
+
+
+def rebuild(ctx):
+    rows = []
+    for v in ("f32", "pruned-f32", "pruned-int8"):
+        code, out = ctx.run([BIN, "rebuild", f"target/demo/{v}", "-o", ctx.dir / v], ok=(0, 1))
+        rows.append({"variant": v, "identical": code == 0, "said": out.strip().splitlines()[-1]})
+    return {"folders": rows}
+
+
+# --- full tier -------------------------------------------------------------------------------
+
+def int8_recipe(ctx):
+    """detect-pruned-int8's own passes (its base is detect-pruned-f32), to run on the f32 model:
+    the same compile as the whole recipe, without training the same model twice."""
+    text = (ROOT / "passes/detect-pruned-int8.yaml").read_text()
+    own = text[text.index("\npasses:"):]
+    path = ctx.dir / "detect-pruned-int8-own.yaml"
+    path.write_text(f"name: detect-pruned-int8\n{own.lstrip()}")
+    return path
+
+
+def pruned(model):
+    def experiment(ctx):
+        path = MODELS[model]
+        f32 = ctx.dir / "f32"
+        rep = compile_(ctx, path, "passes/detect-pruned-f32.yaml", f32)
+        q = compile_(ctx, f32 / "model.onnx", int8_recipe(ctx), ctx.dir / "int8")
+        prune, rec = pass_of(rep, "prune"), pass_of(rep, "recover")
+        tr = rec["details"]["training"]
+        a, b = verify(ctx, path, f32 / "model.onnx"), verify(ctx, path, ctx.dir / "int8/model.onnx")
+        return {
+            "model": model, "device": tr["device"], "macs_ratio": prune["after"]["macs"] / prune["before"]["macs"],
+            "map_original": a["map_reference"], "map_f32": a["map"], "map_int8": b["map"],
+            "kept_f32": a["map"] / a["map_reference"], "kept_int8": b["map"] / b["map_reference"],
+            "recover": {k: tr.get(k) for k in ("steps", "steps_planned", "capped", "seconds", "frames_per_second",
+                                               "batch", "gpu_busy_share", "held_out_loss_before", "held_out_loss_after")},
+            "recovery_kept": rec["details"]["kept"],
+            "compile_seconds": rep["millis"] / 1000, "int8_seconds": q["millis"] / 1000,
+            "int8_missed_budget": any("missed its error budget" in w for w in q["warnings"]),
+        }
+    return experiment
+
+
+def gpu_name():
+    if not shutil.which("nvidia-smi"):
+        return None
+    p = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True, text=True)
+    names = p.stdout.strip().splitlines() if p.returncode == 0 else []
+    return f"{len(names)}x {names[0]}" if names else None
+
+
+def experiments(gpu):
+    """(name, tier, page, function, environment): the order is the order they run in."""
+    cpu = {"CUDA_VISIBLE_DEVICES": ""}
+    out = [
+        ("lossless", "quick", "demo.md", lossless, None),
+        ("int8", "quick", "quantization.md", int8, None),
+        ("demo", "quick", "demo.md", demo, None),
+        ("run", "quick", "run.md", run, None),
+        ("rknn", "quick", "rknn.md", rknn, None),
+        ("scene", "quick", "scene.md", scene, None),
+        ("rebuild", "quick", "reproducible-builds.md", rebuild, cpu),
+        ("pruned-v5-w0.25", "full", "pruning.md", pruned("v5 w0.25"), cpu),
+        ("pruned-v8-w0.25", "full", "pruning.md", pruned("v8 w0.25"), cpu),
+    ]
+    if gpu:
+        out += [(f"pruned-{slug(m)}-gpu", "full", "pruning.md", pruned(m), None) for m in ("v5 w0.25", "v8 w0.25")]
+    return out
+
+
+# --- the record ------------------------------------------------------------------------------
+
+def git(*args):
+    return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+
+
+def machine(gpu):
+    cpu = "unknown CPU"
+    flags = ""
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("model name") and cpu == "unknown CPU":
+            cpu = line.split(":", 1)[1].strip()
+        if line.startswith("flags") and not flags:
+            flags = line
+    return {"cpu": cpu, "cores": os.cpu_count(), "threads": os.cpu_count(), "avx512": " avx512f" in flags,
+            "gpu": gpu, "load_before": round(os.getloadavg()[0], 2)}
+
+
+def measure(names, tier):
+    gpu = gpu_name()
+    chosen = [e for e in experiments(gpu) if (names and e[0] in names) or (not names and (tier == "full" or e[1] == "quick"))]
+    unknown = set(names or ()) - {e[0] for e in experiments(gpu)}
+    if unknown:
+        sys.exit(f"results: no experiment named {', '.join(sorted(unknown))} "
+                 f"(there are: {', '.join(e[0] for e in experiments(gpu))})")
+    (ROOT / "target").mkdir(exist_ok=True)
+    link = ROOT / "target/eval-256x192"
+    frames = subprocess.run(["scripts/eval-set"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+    if link.is_symlink() or not link.exists():
+        if link.is_symlink():
+            link.unlink()
+        link.symlink_to(Path(frames).parent)
+    (ROOT / RECORDS).mkdir(parents=True, exist_ok=True)
+    failed = []
+    for name, tier_, page, fn, env in chosen:
+        commit = git("rev-parse", "HEAD")
+        # Whether what was measured is the commit: the product's files, not the records.
+        changed = git("status", "--porcelain", "--", "src", "passes", "models", "calib", "Cargo.toml", "Cargo.lock")
+        started = datetime.datetime.now(datetime.timezone.utc)
+        ctx = Ctx(name, env)
+        t = time.monotonic()
+        try:
+            figures = fn(ctx)
+        except Failed as e:
+            print(f"results: {name} failed: {e}", file=sys.stderr)
+            failed.append(name)
+            continue
+        record = {
+            "name": name, "tier": tier_, "page": page, "commit": commit, "commit_has_changes": bool(changed),
+            "date": started.strftime("%Y-%m-%d"), "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
+            "machine": machine(gpu if env is None else None), "seconds": round(time.monotonic() - t, 1),
+            "commands": ctx.commands, "figures": figures,
+        }
+        if env:
+            record["environment"] = env
+        (ROOT / RECORDS / f"{name}.json").write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
+        print(f"results: {name}: recorded in {record['seconds']:.0f} s", file=sys.stderr, flush=True)
+    return failed
+
+
+def main():
+    ap = argparse.ArgumentParser(prog="scripts/results")
+    sub = ap.add_subparsers(dest="what", required=True)
+    r = sub.add_parser("run")
+    tier = r.add_mutually_exclusive_group()
+    tier.add_argument("--quick", action="store_const", dest="tier", const="quick")
+    tier.add_argument("--full", action="store_const", dest="tier", const="full")
+    r.add_argument("--only", nargs="+")
+    sub.add_parser("render")
+    sub.add_parser("check")
+    a = ap.parse_args()
+    os.chdir(ROOT)
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import results_render
+    if a.what == "check":
+        sys.exit(results_render.check(ROOT))
+    failed = measure(a.only, a.tier or "quick") if a.what == "run" else []
+    results_render.write(ROOT)
+    if failed:
+        sys.exit(f"results: {len(failed)} experiment(s) failed: {', '.join(failed)} (their records were kept as they were)")
+
+
+if __name__ == "__main__":
+    main()
