@@ -312,11 +312,11 @@ def main():
     sub.add_parser("check")
     a = ap.parse_args()
     os.chdir(ROOT)
+    failed = measure(a.only, a.tier or "quick") if a.what == "run" else []
     sys.path.insert(0, str(ROOT / "scripts"))
     import results_render
     if a.what == "check":
         sys.exit(results_render.check(ROOT))
-    failed = measure(a.only, a.tier or "quick") if a.what == "run" else []
     results_render.write(ROOT)
     if failed:
         sys.exit(f"results: {len(failed)} experiment(s) failed: {', '.join(failed)} (their records were kept as they were)")
