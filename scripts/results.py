@@ -19,6 +19,7 @@ import re
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -55,26 +56,45 @@ class Ctx:
         shutil.rmtree(self.dir, ignore_errors=True)
         self.dir.mkdir(parents=True)
 
-    def run(self, args, ok=(0,), env=None):
+    def run(self, args, ok=(0,), env=None, quiet=False):
         """Runs a command; returns (exit code, stdout and stderr interleaved as they came)."""
         line = " ".join(str(a) for a in args)
         prefix = " ".join(f"{k}={v}" for k, v in dict(self.extra, **(env or {})).items())
         shown = f"{prefix} {line}".strip()
         print(f"results: {self.name}: {shown}", file=sys.stderr, flush=True)
         t = time.monotonic()
-        p = subprocess.run([str(a) for a in args], cwd=ROOT, env=dict(self.env, **(env or {})),
-                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        # Its progress (stderr, and stdout unless it is the JSON asked for) shows as it comes,
+        # indented, and is kept for the record.
+        p = subprocess.Popen([str(a) for a in args], cwd=ROOT, env=dict(self.env, **(env or {})),
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE if quiet else subprocess.STDOUT, text=True)
+        lines = []
+
+        def echo(stream, keep):
+            for line in stream:
+                keep.append(line)
+                print(f"    {line}", end="", file=sys.stderr, flush=True)
+
+        if quiet:
+            errs = []
+            th = threading.Thread(target=echo, args=(p.stderr, errs))
+            th.start()
+            lines = p.stdout.readlines()
+            th.join()
+            lines = errs + lines
+        else:
+            echo(p.stdout, lines)
+        code = p.wait()
+        out = "".join(lines)
         seconds = time.monotonic() - t
-        (self.dir / f"log{len(self.commands)}.txt").write_text(f"$ {shown}\n{p.stdout}")
-        self.commands.append({"command": shown, "seconds": round(seconds, 1), "exit": p.returncode})
-        if p.returncode not in ok:
-            tail = "\n".join(p.stdout.splitlines()[-15:])
-            raise Failed(f"{shown}: exit {p.returncode}\n{tail}")
-        return p.returncode, p.stdout
+        (self.dir / f"log{len(self.commands)}.txt").write_text(f"$ {shown}\n{out}")
+        self.commands.append({"command": shown, "seconds": round(seconds, 1), "exit": code})
+        if code not in ok:
+            raise Failed(f"{shown}: exit {code}\n" + "".join(lines[-15:]))
+        return code, out
 
     def json(self, args, **kw):
-        code, out = self.run(list(args) + ["--json"], **kw)
-        start = out.index("{")  # warnings on stderr come first
+        code, out = self.run(list(args) + ["--json"], quiet=True, **kw)
+        start = out.index("\n{") + 1 if not out.startswith("{") else 0  # stderr first
         return json.loads(out[start:]), code
 
 
@@ -155,7 +175,7 @@ def run(ctx):
 
 
 def rknn(ctx):
-    r, _ = ctx.json([BIN, "rknn-convert", "target/demo/rknn", "--data", EVAL])
+    r, _ = ctx.json([BIN, "rknn-convert", "target/demo/rknn", "--data", EVAL], ok=(0, 1))
     return {"artifact": "the demo's rknn folder (800 recovery steps)", "report": r}
 
 
@@ -309,14 +329,15 @@ def main():
     tier.add_argument("--full", action="store_const", dest="tier", const="full")
     r.add_argument("--only", nargs="+")
     sub.add_parser("render")
-    sub.add_parser("check")
+    sub.add_parser("check").add_argument("root", nargs="?", type=Path, default=ROOT,
+                                         help="a copy of the repository's pages and records")
     a = ap.parse_args()
     os.chdir(ROOT)
     failed = measure(a.only, a.tier or "quick") if a.what == "run" else []
     sys.path.insert(0, str(ROOT / "scripts"))
     import results_render
     if a.what == "check":
-        sys.exit(results_render.check(ROOT))
+        sys.exit(results_render.check(a.root))
     results_render.write(ROOT)
     if failed:
         sys.exit(f"results: {len(failed)} experiment(s) failed: {', '.join(failed)} (their records were kept as they were)")

@@ -21,6 +21,7 @@ mod proto_roundtrip;
 mod recipes;
 mod records;
 mod reference;
+mod results;
 mod roundtrip_fixtures;
 mod run;
 mod scene;

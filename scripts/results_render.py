@@ -1,0 +1,266 @@
+"""Renders docs/results/records/*.json into the README's results table, the demo's screen and
+the docs/results pages' record blocks. Nothing here measures: every figure comes from a record.
+
+A page holds a record's block between `<!-- record NAME -->` and `<!-- /record NAME -->`
+(added at the page's end the first time); the README holds `<!-- results table -->` and
+`<!-- demo screen -->` blocks the same way.
+"""
+import json
+import re
+import sys
+from collections import Counter
+from pathlib import Path
+
+RECORDS = "docs/results/records"
+
+
+def load(root):
+    recs = {}
+    for p in sorted((root / RECORDS).glob("*.json")):
+        r = json.loads(p.read_text())
+        recs[r["name"]] = r
+    return recs
+
+
+# --- words and numbers -----------------------------------------------------------------------
+
+def machine(m):
+    s = f"{m['cores']}-core {m['cpu']}{' (AVX-512)' if m.get('avx512') else ''}, {m['threads']} threads"
+    return s + (f", GPU {m['gpu']}" if m.get("gpu") else ", no GPU")
+
+
+def megs(n):
+    return f"{n / 1e6:.0f} M" if n >= 1e7 else f"{n / 1e6:.1f} M"
+
+
+def size(b):
+    return f"{b / 1e6:.2f} MB" if b >= 1e6 else f"{b / 1e3:.1f} kB"
+
+
+def dur(s):
+    return f"{s:.0f} s" if s < 120 else f"{s / 60:.0f} min"
+
+
+def f4(x):
+    return "-" if x is None else f"{x:.4f}"
+
+
+def table(head, rows):
+    out = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return out
+
+
+# --- one block per record --------------------------------------------------------------------
+
+def lossless(f):
+    return table(["model", "MACs: original → compiled", "mAP original", "mAP compiled", "agreement", "worst rel L2"],
+                 [[m["model"], f"{megs(m['macs_original'])} → {megs(m['macs'])}", f4(m["map_reference"]),
+                   f4(m["map"]), f4(m["agreement"]), f"{m['rel_l2']:.1e}"] for m in f["models"]])
+
+
+def int8(f):
+    return table(["model", "mAP original", "mAP INT8", "kept", "agreement", "worst rel L2", "error budget"],
+                 [[m["model"], f4(m["map_reference"]), f4(m["map"]), f"{m['map'] / m['map_reference']:.3f}×",
+                   f4(m["agreement"]), f"{m['rel_l2']:.3f}", "missed" if m["missed_budget"] else "met"]
+                  for m in f["models"]])
+
+
+def demo(f):
+    rows = []
+    for v in f["variants"]:
+        ms = lambda k: "-" if v[k] is None else f"{v[k]:.2f}"
+        agree = "-" if v["agreement"] is None else f"{v['agreement']:.3f} / {v['agreement_tract']:.3f}"
+        rows.append([v["name"], size(v["bytes"]), megs(v["macs"]), ms("ort_ms"), ms("tract_ms"), f4(v["map_labels"]),
+                     "1.000" if v["name"] == "original" else agree])
+    rec = "; ".join(f"{r['target']}: {r['variant'] or 'none'}" for r in f["recommended"])
+    return table(["variant", "size", "MACs", "ORT ms", "tract ms", "mAP (labels)", "agreement ORT / tract"], rows) + \
+        ["", f"Recommended: {rec}. Recovery: {f['recover_steps']} steps; the demo took {dur(f['seconds'])}."]
+
+
+def run(f):
+    return [f"Artifact: {f['artifact']}.", ""] + table(
+        ["engine", "threads", "frames/s", "pre-process ms", "inference ms", "decode + NMS ms", "mAP (labels)"],
+        [[e["engine"], e["threads"], f"{e['frames_per_second']:.1f}", f"{e['preprocess_ms']:.2f}",
+          f"{e['inference_ms']:.2f}", f"{e['decode_nms_ms']:.2f}", f4(e["map"])] for e in f["engines"]])
+
+
+def rknn(f):
+    r = f["report"]
+    rows = [[o["name"], f"{o['cosine']:.4f}", f"{o['rel_l2']:.4f}"] for o in r["outputs"] + r["groups"]]
+    cpu = ", ".join(r["cpu_layers"]) or "none"
+    return [f"Artifact: {f['artifact']}; {r['npu_layers']} layers on the NPU, on the CPU: {cpu}. The toolkit's "
+            f"simulator against ONNX Runtime ({r['validation']}); detections: {r['detections_matched']} of ONNX Runtime's "
+            f"{r['detections_ort']} found (the simulator made {r['detections_rknn']}); "
+            f"{'passed' if r['passed'] else 'failed: ' + '; '.join(r['failures'])} at cosine ≥ {r['min_cosine']}:", ""] + \
+        table(["output or score group", "cosine", "rel L2"], rows)
+
+
+def scene(f):
+    return table(["model", "ROI", "MACs", "params", "agreement"],
+                 [[f["model"], f["roi"], f"{f['macs_ratio']:.3f}×", f"{f['params_ratio']:.3f}×", f4(f["agreement"])]])
+
+
+def rebuild(f):
+    return table(["the demo's folder", "same bytes", "rebuild said"],
+                 [[r["variant"], "yes" if r["identical"] else "no", r["said"].replace("|", "\\|")] for r in f["folders"]])
+
+
+def pruned(f):
+    rc = f["recover"]
+    capped = ", stopped by its time cap" if rc["capped"] else ""
+    busy = f", GPU {rc['gpu_busy_share']:.0%} busy" if rc.get("gpu_busy_share") else ""
+    return table(["model", "MACs", "recovery", "mAP original", "pruned f32", "pruned INT8"],
+                 [[f["model"], f"{f['macs_ratio']:.2f}×",
+                   f"{rc['steps']} steps on the {f['device'].upper()} in {dur(rc['seconds'])} "
+                   f"({rc['frames_per_second']:.1f} frames/s{busy}{capped})",
+                   f4(f["map_original"]), f"{f4(f['map_f32'])} ({f['kept_f32']:.3f}×)",
+                   f"{f4(f['map_int8'])} ({f['kept_int8']:.3f}×)"]])
+
+
+BLOCKS = {"lossless": lossless, "int8": int8, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
+          "rebuild": rebuild}
+
+
+def block(r):
+    fn = BLOCKS.get(r["name"]) or (pruned if r["name"].startswith("pruned-") else None)
+    commit = r["commit"][:10] + (" (with uncommitted changes to the product)" if r["commit_has_changes"] else "")
+    load = r["machine"].get("load_before")
+    lines = [f"**Record `{r['name']}`** ({r['tier']} tier of `scripts/results`): {r['date']}, {machine(r['machine'])}"
+             f"{f', load {load} at the start' if load is not None else ''}; commit {commit}; {dur(r['seconds'])}.", ""]
+    lines += fn(r["figures"]) + ["", "Commands (from the repository root; seconds):", ""]
+    lines += [f"- `{c['command']}` ({c['seconds']:.0f} s)" for c in r["commands"]]
+    return lines
+
+
+# --- the README ------------------------------------------------------------------------------
+
+def readme_rows(recs):
+    rows = []
+
+    def row(task, result, name, page, anchor=""):
+        rows.append((task, result, name, page + anchor))
+
+    if "lossless" in recs:
+        ms = recs["lossless"]["figures"]["models"]
+        same = all(abs(m["map"] - m["map_reference"]) < 5e-5 for m in ms)
+        t = next(m for m in ms if m["model"] == "v5 tiny")
+        row("lossless compile (`detect-f32`)",
+            f"{'the same mAP' if same else 'mAP moved'} on the {len(ms)} trained models (tiny v5: {f4(t['map_reference'])} → "
+            f"{f4(t['map'])}); outputs within {max(m['rel_l2'] for m in ms):.0e} rel L2; tiny v5 {megs(t['macs_original'])} → "
+            f"{megs(t['macs'])} MACs", "lossless", "demo.md")
+    cpu = [recs[n] for n in ("pruned-v5-w0.25", "pruned-v8-w0.25") if n in recs]
+    if cpu:
+        fs = [r["figures"] for r in cpu]
+        steps = " / ".join(str(f["recover"]["steps"]) for f in fs)
+        took = " / ".join(dur(f["recover"]["seconds"]) for f in fs)
+        row(f"prune + recover (`detect-pruned-f32` as shipped: {steps} steps on the CPU, recovery {took})",
+            f"{fs[0]['macs_ratio']:.0%} of the MACs; keeps "
+            + " and ".join(f"{f['kept_f32']:.3f}× ({f['model']}: {f['map_f32']:.3f} of {f['map_original']:.3f})" for f in fs)
+            + " of the mAP", cpu[0]["name"], "pruning.md")
+        row("+ INT8 (`detect-pruned-int8`)",
+            "keeps " + " and ".join(f"{f['kept_int8']:.3f}× ({f['model']})" for f in fs), cpu[0]["name"], "pruning.md")
+    gpu = [recs[n] for n in ("pruned-v5-w0.25-gpu", "pruned-v8-w0.25-gpu") if n in recs]
+    if gpu:
+        fs = [r["figures"] for r in gpu]
+        row(f"`detect-pruned-f32` as shipped on a GPU ({gpu[0]['machine']['gpu']})",
+            "recovery in " + " / ".join(f"{dur(f['recover']['seconds'])} ({f['model']})" for f in fs)
+            + "; keeps " + " / ".join(f"{f['kept_f32']:.3f}×" for f in fs), gpu[0]["name"], "pruning.md")
+    if "int8" in recs:
+        ms = recs["int8"]["figures"]["models"]
+        row("INT8 without pruning (`detect-int8`)",
+            "keeps " + ", ".join(f"{m['map'] / m['map_reference']:.3f}× ({m['model']})" for m in ms), "int8", "quantization.md")
+    if "demo" in recs:
+        f = recs["demo"]["figures"]
+        v = {x["name"]: x for x in f["variants"]}
+        p, o = v["pruned-f32"], v["original"]
+        row(f"`scripts/demo` (`ship` on the tiny v5, {f['recover_steps']} recovery steps)",
+            f"pruned to {p['macs'] / v['f32']['macs']:.0%} of the lossless MACs, keeps {p['map_labels'] / o['map_labels']:.2f}× "
+            f"of the mAP; ONNX Runtime {p['ort_ms']:.2f} ms against the original's {o['ort_ms']:.2f}", "demo", "demo.md")
+    if "rknn" in recs:
+        r = recs["rknn"]["figures"]["report"]
+        worst = min(o["cosine"] for o in r["outputs"])
+        row("RK3588 (the demo's `rknn` folder, `rknn-convert`)",
+            f"{r['npu_layers']} layers on the NPU, {len(r['cpu_layers'])} on the CPU; the toolkit's simulator against ONNX "
+            f"Runtime: cosine ≥ {worst:.4f} on every output, {r['detections_matched']} of {r['detections_ort']} detections found", "rknn", "rknn.md")
+    if "scene" in recs:
+        f = recs["scene"]["figures"]
+        row(f"scene: an ROI of {f['roi'].split(', ')[-1]}",
+            f"{f['macs_ratio']:.2f}× the MACs at {f['agreement']:.3f} agreement with the full model ({f['model']})",
+            "scene", "scene.md")
+    if "run" in recs:
+        e = {x["engine"]: x for x in recs["run"]["figures"]["engines"]}
+        row("`run` end to end (the demo's pruned tiny v5)",
+            f"{e['ort']['frames_per_second']:.0f} frames/s on ONNX Runtime, {e['tract']['frames_per_second']:.0f} on tract; "
+            f"decode + NMS {e['ort']['decode_nms_ms']:.2f} ms", "run", "run.md")
+    if "rebuild" in recs:
+        fs = recs["rebuild"]["figures"]["folders"]
+        row("reproducible builds (`rebuild` of the demo's folders)",
+            f"{sum(r['identical'] for r in fs)} of {len(fs)} rebuilt to the same bytes", "rebuild", "reproducible-builds.md")
+    return rows
+
+
+def readme_table(recs):
+    if not recs:
+        return ["No records yet: `scripts/results` makes them."]
+    machines = Counter(machine(r["machine"]) for r in recs.values())
+    common = machines.most_common(1)[0][0]
+    dates = sorted(r["date"] for r in recs.values())
+    lines = [f"Rendered from `docs/results/records/` (`scripts/results`); measured on a {common} "
+             f"({dates[0]}{' to ' + dates[-1] if dates[-1] != dates[0] else ''}) unless a row says otherwise; "
+             "mAP@0.5:0.95 against the labels of 200 held-out frames of `scripts/eval-set`:", ""]
+    rows = []
+    for task, result, name, page in readme_rows(recs):
+        r = recs[name]
+        where = "" if machine(r["machine"]) == common else f"; {machine(r['machine'])}"
+        rows.append([task, result, f"[{r['date']}{where}](docs/results/{page})"])
+    return lines + table(["task", "result", "record"], rows)
+
+
+def demo_screen(recs):
+    if "demo" not in recs:
+        return ["No demo record yet: `scripts/results --only demo` makes it."]
+    r = recs["demo"]
+    return [f"Its screen (stderr and stdout, {len(r['figures']['screen'])} lines; {r['date']}, {machine(r['machine'])}; "
+            f"[the record](docs/results/demo.md)):", "", "```"] + r["figures"]["screen"] + ["```"]
+
+
+# --- pages -----------------------------------------------------------------------------------
+
+def splice(text, tag, body, name=None):
+    """Replaces the block between <!-- tag --> and <!-- /tag -->, or appends it."""
+    open_, close = f"<!-- {tag} -->", f"<!-- /{tag} -->"
+    new = "\n".join([open_, *body, close])
+    pat = re.compile(re.escape(open_) + r".*?" + re.escape(close), re.S)
+    if pat.search(text):
+        return pat.sub(lambda _: new, text, count=1)
+    heading = "" if "\n## Records\n" in text else "\n## Records\n\nRendered from `docs/results/records/` by `scripts/results`.\n"
+    return text.rstrip("\n") + "\n" + heading + "\n" + new + "\n"
+
+
+def rendered(root):
+    recs = load(root)
+    pages = {}
+    readme = (root / "README.md").read_text()
+    readme = splice(readme, "results table", readme_table(recs))
+    readme = splice(readme, "demo screen", demo_screen(recs))
+    pages["README.md"] = readme
+    for r in recs.values():
+        path = f"docs/results/{r['page']}"
+        text = pages.get(path) or (root / path).read_text()
+        pages[path] = splice(text, f"record {r['name']}", block(r))
+    return pages
+
+
+def write(root):
+    for path, text in rendered(root).items():
+        if (root / path).read_text() != text:
+            (root / path).write_text(text)
+            print(f"results: rendered {path}", file=sys.stderr)
+
+
+def check(root):
+    stale = [p for p, t in rendered(root).items() if (root / p).read_text() != t]
+    for p in stale:
+        print(f"results: {p} differs from its records; run scripts/results render", file=sys.stderr)
+    return 1 if stale else 0

@@ -1,0 +1,64 @@
+//! The README's results table, its demo screen and the docs/results pages' record blocks are
+//! rendered from docs/results/records/ (scripts/results): a figure typed into them, or a record
+//! changed without rendering, fails here.
+
+use crate::common::repo;
+use std::path::Path;
+use std::process::Command;
+
+fn check(root: &Path) -> std::process::Output {
+    let python = std::env::var("PDI_PYTHON").expect("PDI_PYTHON is not set: run the suite with scripts/test");
+    Command::new(python).arg(repo().join("scripts/results.py")).arg("check").arg(root).output().unwrap()
+}
+
+/// The pages, records and README of the repository, copied where a test may change them.
+fn copy(to: &Path) {
+    let root = repo();
+    std::fs::create_dir_all(to.join("docs/results/records")).unwrap();
+    std::fs::copy(root.join("README.md"), to.join("README.md")).unwrap();
+    for dir in ["docs/results", "docs/results/records"] {
+        for e in std::fs::read_dir(root.join(dir)).unwrap() {
+            let e = e.unwrap();
+            if e.file_type().unwrap().is_file() {
+                std::fs::copy(e.path(), to.join(dir).join(e.file_name())).unwrap();
+            }
+        }
+    }
+}
+
+#[test]
+fn the_committed_pages_are_what_the_records_render() {
+    let out = check(&repo());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+#[test]
+fn a_record_that_changes_makes_the_pages_stale() {
+    let dir = tempfile::tempdir().unwrap();
+    copy(dir.path());
+    let records = dir.path().join("docs/results/records");
+    let first = std::fs::read_dir(&records).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|e| e == "json")).min().expect("at least one record");
+    let text = std::fs::read_to_string(&first).unwrap();
+    // Every record carries its date, and every rendering shows it.
+    let changed = text.replacen("\"date\": \"", "\"date\": \"1999-", 1);
+    assert_ne!(changed, text);
+    std::fs::write(&first, changed).unwrap();
+    let out = check(dir.path());
+    assert_eq!(out.status.code(), Some(1), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("differs from its records"));
+}
+
+#[test]
+fn a_figure_typed_into_the_readme_table_is_caught() {
+    let dir = tempfile::tempdir().unwrap();
+    copy(dir.path());
+    let readme = dir.path().join("README.md");
+    let text = std::fs::read_to_string(&readme).unwrap();
+    let row = text.find("<!-- results table -->").expect("the README holds the results table");
+    let at = row + text[row..].find("| lossless").expect("a lossless row");
+    let changed = format!("{}| lossless compile, typed by hand | 1.000× | here |\n{}", &text[..at], &text[at..]);
+    std::fs::write(&readme, changed).unwrap();
+    let out = check(dir.path());
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("README.md differs"), "{}", String::from_utf8_lossy(&out.stderr));
+}
