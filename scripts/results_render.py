@@ -115,7 +115,10 @@ def pruned(f):
                    f"{rc['steps']} steps on the {f['device'].upper()} in {dur(rc['seconds'])} "
                    f"({rc['frames_per_second']:.1f} frames/s{busy}{capped})",
                    f4(f["map_original"]), f"{f4(f['map_f32'])} ({f['kept_f32']:.3f}×)",
-                   f"{f4(f['map_int8'])} ({f['kept_int8']:.3f}×)"]])
+                   f"{f4(f['map_int8'])} ({f['kept_int8']:.3f}×)"]]) + \
+        ["", "INT8 is `detect-pruned-int8`'s own passes (its quantization) run on the pruned f32 model: the "
+             "same bytes as the whole recipe, which starts from `detect-pruned-f32` (the suite checks this), "
+             "without training the same model twice."]
 
 
 BLOCKS = {"lossless": lossless, "int8": int8, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
