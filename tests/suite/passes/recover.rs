@@ -160,6 +160,16 @@ fn a_pruned_compile_is_byte_identical_when_repeated_under_load() {
     assert!(report["identical"] == true && report["compared_by"].as_str().unwrap().starts_with("bytes"), "{report}");
     let (x, y) = (std::fs::read(a.join("model.onnx")).unwrap(), std::fs::read(b.join("model.onnx")).unwrap());
     assert!(x == y, "the first compile and its rebuild differ ({} and {} bytes)", x.len(), y.len());
+
+    // Its base compiled alone, then only its own passes on that model, give the same bytes:
+    // scripts/results measures detect-pruned-f32 and detect-pruned-int8 from one training so.
+    let (c, d) = (dir.path().join("c"), dir.path().join("d"));
+    compile("models/trained/pdinet_v5_tiny_trained.onnx", dir.path().join("detect-pruned-f32.yaml").to_str().unwrap(), &c);
+    let int8 = std::fs::read_to_string(&recipe).unwrap();
+    let own = dir.path().join("own.yaml");
+    std::fs::write(&own, format!("name: detect-pruned-int8\n{}", int8[int8.find("\npasses:").unwrap()..].trim_start())).unwrap();
+    compile(c.join("model.onnx").to_str().unwrap(), own.to_str().unwrap(), &d);
+    assert!(std::fs::read(d.join("model.onnx")).unwrap() == x, "detect-pruned-int8 in two stages differs from the recipe in one");
 }
 
 /// A time cap that stops training early is said on stderr, in the report and in the manifest,
