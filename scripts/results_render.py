@@ -70,7 +70,7 @@ def demo(f):
     rows = []
     for v in f["variants"]:
         ms = lambda k: "-" if v[k] is None else f"{v[k]:.2f}"
-        agree = "-" if v["agreement"] is None else f"{v['agreement']:.3f} / {v['agreement_tract']:.3f}"
+        agree = " / ".join("-" if v[k] is None else f"{v[k]:.3f}" for k in ("agreement", "agreement_tract"))
         rows.append([v["name"], size(v["bytes"]), megs(v["macs"]), ms("ort_ms"), ms("tract_ms"), f4(v["map_labels"]),
                      "1.000" if v["name"] == "original" else agree])
     rec = "; ".join(f"{r['target']}: {r['variant'] or 'none'}" for r in f["recommended"])
