@@ -15,7 +15,6 @@ import argparse
 import datetime
 import json
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -57,7 +56,8 @@ class Ctx:
         self.dir.mkdir(parents=True)
 
     def run(self, args, ok=(0,), env=None, quiet=False):
-        """Runs a command; returns (exit code, stdout and stderr interleaved as they came)."""
+        """Runs a command; returns (exit code, stdout and stderr interleaved as they came), or
+        with `quiet` (stdout is the JSON asked for) stdout alone, stderr shown and logged."""
         line = " ".join(str(a) for a in args)
         prefix = " ".join(f"{k}={v}" for k, v in dict(self.extra, **(env or {})).items())
         shown = f"{prefix} {line}".strip()
@@ -75,18 +75,17 @@ class Ctx:
                 print(f"    {line}", end="", file=sys.stderr, flush=True)
 
         if quiet:
-            errs = []
-            th = threading.Thread(target=echo, args=(p.stderr, errs))
+            th = threading.Thread(target=echo, args=(p.stderr, lines))
             th.start()
-            lines = p.stdout.readlines()
+            out = p.stdout.read()
             th.join()
-            lines = errs + lines
         else:
             echo(p.stdout, lines)
         code = p.wait()
-        out = "".join(lines)
+        logged = "".join(lines)
+        out = out if quiet else logged
         seconds = time.monotonic() - t
-        (self.dir / f"log{len(self.commands)}.txt").write_text(f"$ {shown}\n{out}")
+        (self.dir / f"log{len(self.commands)}.txt").write_text(f"$ {shown}\n{logged}{out if quiet else ''}")
         self.commands.append({"command": shown, "seconds": round(seconds, 1), "exit": code})
         if code not in ok:
             raise Failed(f"{shown}: exit {code}\n" + "".join(lines[-15:]))
@@ -94,8 +93,7 @@ class Ctx:
 
     def json(self, args, **kw):
         code, out = self.run(list(args) + ["--json"], quiet=True, **kw)
-        start = out.index("\n{") + 1 if not out.startswith("{") else 0  # stderr first
-        return json.loads(out[start:]), code
+        return json.loads(out), code
 
 
 def report(folder):
@@ -280,17 +278,19 @@ def machine(gpu):
 
 def measure(names, tier):
     gpu = gpu_name()
-    chosen = [e for e in experiments(gpu) if (names and e[0] in names) or (not names and (tier == "full" or e[1] == "quick"))]
-    unknown = set(names or ()) - {e[0] for e in experiments(gpu)}
+    every = experiments(gpu)
+    chosen = [e for e in every if (names and e[0] in names) or (not names and (tier == "full" or e[1] == "quick"))]
+    unknown = set(names or ()) - {e[0] for e in every}
     if unknown:
         sys.exit(f"results: no experiment named {', '.join(sorted(unknown))} "
-                 f"(there are: {', '.join(e[0] for e in experiments(gpu))})")
+                 f"(there are: {', '.join(e[0] for e in every)})")
     (ROOT / "target").mkdir(exist_ok=True)
+    # Linked as scripts/demo links it, so that commands and records name no machine's folders.
     link = ROOT / "target/eval-256x192"
     frames = subprocess.run(["scripts/eval-set"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
-    if link.is_symlink() or not link.exists():
-        if link.is_symlink():
-            link.unlink()
+    if link.is_symlink():
+        link.unlink()
+    if not link.exists():
         link.symlink_to(Path(frames).parent)
     (ROOT / RECORDS).mkdir(parents=True, exist_ok=True)
     failed = []

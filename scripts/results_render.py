@@ -141,8 +141,8 @@ def block(r):
 def readme_rows(recs):
     rows = []
 
-    def row(task, result, name, page, anchor=""):
-        rows.append((task, result, name, page + anchor))
+    def row(task, result, name, page):
+        rows.append((task, result, name, page))
 
     if "lossless" in recs:
         ms = recs["lossless"]["figures"]["models"]
