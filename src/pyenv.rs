@@ -98,10 +98,15 @@ pub fn run_worker(dir: &Path, script: &str, args: &[&std::ffi::OsStr], ranks: us
     for line in BufReader::new(child.stdout.take().expect("piped")).lines() {
         let Ok(event) = serde_json::from_str::<serde_json::Value>(&line?) else { continue };
         if event["event"] == "done" {
+            // Everything is written before `done`: what follows is the ranks' shutdown.
             done = Some(event);
+            break;
         } else {
             on_event(&event);
         }
+    }
+    if let Some(d) = done.take_if(|_| ranks > 1) {
+        return finish(&mut child, ranks, SHUTDOWN).map(|()| d);
     }
     let status = child.wait()?;
     let err = errors.join().unwrap_or_default();
@@ -109,6 +114,40 @@ pub fn run_worker(dir: &Path, script: &str, args: &[&std::ffi::OsStr], ranks: us
         Some(d) => Ok(d),
         None => bail!("{script} failed ({status}): {}", err.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message")),
     }
+}
+
+/// How long a distributed job that reported `done` may take to exit.
+const SHUTDOWN: std::time::Duration = std::time::Duration::from_secs(120);
+
+/// Waits for a torch.distributed job that has reported `done`. Its teardown can hang (the
+/// ranks' last barrier or `destroy_process_group`, a known gloo flake) although its results
+/// are on disk by then: past `grace` the launcher is asked to stop its ranks (SIGTERM, which
+/// torchrun passes on), then past another `grace` killed, with a warning, and the run stands.
+fn finish(child: &mut std::process::Child, ranks: usize, grace: std::time::Duration) -> Result<()> {
+    let exited = |child: &mut std::process::Child, within: std::time::Duration| -> Result<Option<std::process::ExitStatus>> {
+        let start = std::time::Instant::now();
+        while start.elapsed() < within {
+            if let Some(status) = child.try_wait()? {
+                return Ok(Some(status));
+            }
+            std::thread::sleep(std::time::Duration::from_millis(100));
+        }
+        Ok(None)
+    };
+    match exited(child, grace)? {
+        Some(status) if status.success() => return Ok(()),
+        Some(status) => crate::warn::warn(format!("the {ranks} training ranks reported their result, then exited with {status}")),
+        None => {
+            crate::warn::warn(format!("the {ranks} training ranks reported their result but did not exit within {} s: stopped", grace.as_secs_f32()));
+            // SAFETY: a signal to this function's own child, which has not been reaped.
+            unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGTERM) };
+            if exited(child, grace)?.is_none() {
+                child.kill()?;
+                child.wait()?;
+            }
+        }
+    }
+    Ok(())
 }
 
 /// With `PDI_WORKER_LOCK` naming a file, the Python workers that take every core (trainings,
@@ -150,4 +189,31 @@ pub fn cache() -> Result<PathBuf> {
         .or_else(|| set("XDG_CACHE_HOME").map(|c| c.join("pdi-compile")))
         .or_else(|| set("HOME").map(|h| h.join(".cache/pdi-compile")))
         .ok_or_else(|| anyhow!("set PDI_CACHE or HOME: Python environments are installed into a cache folder"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::{Duration, Instant};
+
+    fn sh(script: &str) -> std::process::Child {
+        Command::new("sh").args(["-c", script]).spawn().unwrap()
+    }
+
+    #[test]
+    fn a_job_that_does_not_exit_after_done_is_stopped() {
+        let grace = Duration::from_millis(300);
+        let start = Instant::now();
+        // Exits on SIGTERM, like torchrun.
+        finish(&mut sh("exec sleep 60"), 2, grace).unwrap();
+        // Ignores it: killed.
+        let mut deaf = sh("trap '' TERM; sleep 60; sleep 60");
+        finish(&mut deaf, 2, grace).unwrap();
+        assert!(deaf.try_wait().unwrap().is_some());
+        assert!(start.elapsed() < Duration::from_secs(10), "{:?}", start.elapsed());
+        // A job that exits on its own is waited for.
+        let mut quick = sh("sleep 0.1");
+        finish(&mut quick, 2, Duration::from_secs(30)).unwrap();
+        assert!(quick.try_wait().unwrap().unwrap().success());
+    }
 }

@@ -12,6 +12,7 @@ order and augmentation, takes its equal share of each batch, and normalizes the 
 whole batch, so the weights are one process's up to float summation order; rank 0 reports and
 writes the result.
 """
+import datetime
 import json
 import math
 import os
@@ -190,7 +191,9 @@ def setup(cfg):
         if dev.type == "cuda":
             dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
             torch.cuda.set_device(dev)
-        dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
+        # A collective that waits this long has lost a rank: fail rather than hang (the
+        # default is half an hour; no step of these models takes a minute).
+        dist.init_process_group("nccl" if dev.type == "cuda" else "gloo", timeout=datetime.timedelta(minutes=10))
     torch.set_num_threads(int(cfg.get("threads") or os.cpu_count() or 1))
     if dev.type == "cpu":
         torch.use_deterministic_algorithms(True)
