@@ -442,7 +442,7 @@ pub fn run(cli: Cli) -> Result<u8> {
         }
         Command::Compile { model, pipeline, out, psf, keep_outputs, calib, external_data, scene, target, threads, json } => {
             let scene = scene.as_deref().map(crate::scene::Scene::load).transpose()?;
-            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib, keep_outputs, scene, ..Default::default() }, target, threads: threads_or_all(threads)?, decisions: None };
+            let req = CompileRequest { model, pipeline, out_dir: out, external_data, context: PassContext { psf, calib, keep_outputs, scene, ..Default::default() }, target, threads: threads_or_all(threads)?, decisions: None, moved: None };
             let r = compile(&req)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);

@@ -33,6 +33,22 @@ pub struct CompileRequest {
     pub threads: usize,
     /// The tract target's timed choices from an earlier build (`rebuild`); None: time them.
     pub decisions: Option<crate::targets::tract::Decisions>,
+    /// Paths under `.0` recorded as under `.1`: the compile runs inside a folder that is
+    /// moved into place later (`ship`, `bench`), and its manifest must name where its input,
+    /// recipe and output will be.
+    pub moved: Option<(PathBuf, PathBuf)>,
+}
+
+impl CompileRequest {
+    /// `p` as the report and manifest record it.
+    fn recorded(&self, p: &Path) -> String {
+        match &self.moved {
+            Some((from, to)) => p.strip_prefix(from).map_or_else(|_| p.to_path_buf(), |rest| to.join(rest)),
+            None => p.to_path_buf(),
+        }
+        .display()
+        .to_string()
+    }
 }
 
 #[derive(Serialize)]
@@ -122,17 +138,17 @@ pub fn compile_recipe(req: &CompileRequest, recipe: Recipe) -> Result<CompileRep
     let unrepeatable: Vec<String> = passes.iter().flat_map(|p| crate::manifest::not_reproducible(&p.details).into_iter().map(|w| format!("{}: {w}", p.pass))).collect();
     let report = CompileReport {
         tool_version: env!("CARGO_PKG_VERSION"),
-        input: req.model.display().to_string(),
+        input: req.recorded(&req.model),
         input_sha256: crate::manifest::hex(&Sha256::digest(&bytes)),
         pipeline: recipe,
-        pipeline_file: req.pipeline.display().to_string(),
+        pipeline_file: req.recorded(&req.pipeline),
         before,
         after,
         passes,
         warnings: crate::warn::take().into_iter().chain(cx.warnings).collect(),
         not_reproducible: unrepeatable,
         millis: t.elapsed().as_secs_f64() * 1e3,
-        output: out_model.display().to_string(),
+        output: req.recorded(&out_model),
         target: req.target,
         target_check,
     };

@@ -68,6 +68,7 @@ pub fn rebuild(req: &RebuildRequest) -> Result<RebuildReport> {
         target: m.target,
         threads: m.threads,
         decisions,
+        moved: None,
     };
     // The manifest's recipe already has the scene's passes in place; with_scene keeps them.
     compile_recipe(&compile, with_recorded_ratios(&m)?)?;

@@ -210,6 +210,7 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
             target: crate::targets::Target::Onnx,
             threads: req.threads,
             decisions: None,
+            moved: Some((staged.path().to_path_buf(), req.out.clone())),
         });
         let Some(r) = failed.take("bench", name, compiled).map_err(|e| anyhow!("compiling the {name} variant: {e:#}"))? else { continue };
         notes.extend(r.warnings.iter().filter(|w| w.contains("missed its error budget")).map(|w| format!("{name}: {w}")));

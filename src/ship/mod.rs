@@ -129,6 +129,7 @@ pub fn ship(req: &ShipRequest) -> Result<ShipReport> {
             target,
             threads: req.threads,
             decisions: None,
+            moved: Some((root.clone(), req.out.clone())),
         });
         let Some(report) = failed.take("ship", name, report).map_err(|e| anyhow!("compiling {name}: {e:#}"))? else { continue };
         warnings.extend(report.warnings.iter().map(|w| format!("{name}: {w}")));

@@ -47,4 +47,17 @@ fn ship_writes_every_artifact_and_one_screen() {
     }
     assert_eq!(rec[2]["variant"], "rknn");
     assert!(r.stdout.contains("deploy\n  onnxruntime  "), "{}", r.stdout);
+    // The folders were built beside --out and moved there: their manifests name where their
+    // inputs and recipes are now, so a variant built from another one rebuilds.
+    for v in ["f32", "pruned-f32", "pruned-int8", "rknn"] {
+        let manifest = std::fs::read_to_string(out.join(v).join("manifest.yaml")).unwrap();
+        assert!(!manifest.contains(".pdi-partial-"), "{v}'s manifest names the staging folder:\n{manifest}");
+        assert!(manifest.contains(&format!("pipeline_file: {}", out.join("recipes").join(format!("{v}.yaml")).display())), "{v}:\n{manifest}");
+    }
+    let int8 = std::fs::read_to_string(out.join("pruned-int8/manifest.yaml")).unwrap();
+    assert!(int8.contains(&format!("input: {}", out.join("pruned-f32/model.onnx").display())), "{int8}");
+    let again = dir.path().join("again");
+    let r = cli(&["rebuild", out.join("pruned-int8").to_str().unwrap(), "-o", again.to_str().unwrap()]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    assert!(r.stdout.contains("model.onnx identical"), "{}", r.stdout);
 }
