@@ -13,6 +13,7 @@ Run it through scripts/results, which installs what it needs and builds the bina
 """
 import argparse
 import datetime
+import hashlib
 import json
 import os
 import shutil
@@ -197,6 +198,57 @@ def rebuild(ctx):
     return {"folders": rows}
 
 
+def shortened(ctx):
+    """The shipped recipes with every training cut to a few steps (their bases beside them):
+    the same passes and code paths, in minutes."""
+    import re
+    folder = ctx.dir / "recipes"
+    folder.mkdir()
+    for src in sorted((ROOT / "passes").glob("*.yaml")):
+        if not src.read_text().startswith("name:"):
+            continue  # the gate's thresholds and the stress set are not recipes
+        lines = []
+        for line in src.read_text().splitlines(keepends=True):
+            if line.lstrip().startswith("- "):
+                line = re.sub(r"\bsteps: \d+", "steps: 12", line)
+                line = re.sub(r"\brounding_iterations: \d+", "rounding_iterations: 12", line)
+                line = re.sub(r"\bframes: (\d{3,})", "frames: 64", line)
+            lines.append(line)
+        (folder / src.name).write_text("".join(lines))
+    return folder
+
+
+def recipe_bytes(ctx):
+    """Every shipped recipe compiled on the trained v5 w0.25, trainings shortened: the sha256 of
+    each model, and which of them match the record this one replaces."""
+    model = MODELS["v5 w0.25"]
+    folder = shortened(ctx)
+    hashes = {}
+    for recipe in sorted(folder.glob("*.yaml")):
+        name = recipe.stem
+        target = ["--target", "rknn"] if "rknn" in name else []
+        out = ctx.dir / "out" / name
+        compile_(ctx, model, recipe, out, *target)
+        hashes[name] = hashlib.sha256((out / "model.onnx").read_bytes()).hexdigest()
+    before = previous("recipe-bytes")
+    figures = {"model": "v5 w0.25", "training_steps": 12, "sha256": hashes}
+    if before:
+        old = before["figures"]["sha256"]
+        figures["previous"] = {"commit": before["commit"],
+                               "same": sorted(k for k in hashes if old.get(k) == hashes[k]),
+                               "differ": sorted(k for k in hashes if k in old and old[k] != hashes[k]),
+                               "new": sorted(k for k in hashes if k not in old)}
+    return figures
+
+
+def previous(name):
+    """The committed record `name`, if there is one."""
+    try:
+        return json.loads(git("show", f"HEAD:{RECORDS / name}.json"))
+    except subprocess.CalledProcessError:
+        return None
+
+
 # --- full tier -------------------------------------------------------------------------------
 
 def int8_recipe(ctx):
@@ -250,6 +302,7 @@ def experiments(gpu):
         ("rknn", "quick", "rknn.md", rknn, None),
         ("scene", "quick", "scene.md", scene, None),
         ("rebuild", "quick", "reproducible-builds.md", rebuild, cpu),
+        ("recipe-bytes", "quick", "reproducible-builds.md", recipe_bytes, cpu),
         ("pruned-v5-w0.25", "full", "pruning.md", pruned("v5 w0.25"), cpu),
         ("pruned-v8-w0.25", "full", "pruning.md", pruned("v8 w0.25"), cpu),
     ]
@@ -294,10 +347,11 @@ def measure(names, tier):
         link.symlink_to(Path(frames).parent)
     (ROOT / RECORDS).mkdir(parents=True, exist_ok=True)
     failed = []
+    # Whether what is measured is the commit: the product's files, not the records, as they
+    # were when scripts/results built the binary (just before this).
+    commit = git("rev-parse", "HEAD")
+    changed = git("status", "--porcelain", "--", "src", "passes", "models", "calib", "Cargo.toml", "Cargo.lock")
     for name, tier_, page, fn, env in chosen:
-        commit = git("rev-parse", "HEAD")
-        # Whether what was measured is the commit: the product's files, not the records.
-        changed = git("status", "--porcelain", "--", "src", "passes", "models", "calib", "Cargo.toml", "Cargo.lock")
         started = datetime.datetime.now(datetime.timezone.utc)
         ctx = Ctx(name, env)
         t = time.monotonic()

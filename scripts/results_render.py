@@ -106,6 +106,17 @@ def rebuild(f):
                  [[r["variant"], "yes" if r["identical"] else "no", r["said"].replace("|", "\\|")] for r in f["folders"]])
 
 
+def recipe_bytes(f):
+    prev = f.get("previous")
+    rows = [[f"`{k}`", f"`{v[:16]}`", "" if not prev else "same" if k in prev["same"] else "differs" if k in prev["differ"] else "new"]
+            for k, v in sorted(f["sha256"].items())]
+    lines = table(["recipe", "sha256 of model.onnx", f"against commit {prev['commit'][:10]}" if prev else "previous record"], rows)
+    return lines + ["", f"Every shipped recipe compiled on the trained {f['model']}, each training shortened to "
+                        f"{f['training_steps']} steps (and 64 frames) so that the whole set takes minutes: the "
+                        "passes and code paths of the shipped recipes, compared by bytes with the record this one "
+                        "replaced."]
+
+
 def pruned(f):
     rc = f["recover"]
     capped = ", stopped by its time cap" if rc["capped"] else ""
@@ -122,7 +133,7 @@ def pruned(f):
 
 
 BLOCKS = {"lossless": lossless, "int8": int8, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
-          "rebuild": rebuild}
+          "rebuild": rebuild, "recipe-bytes": recipe_bytes}
 
 
 def block(r):
