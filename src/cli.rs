@@ -233,19 +233,9 @@ pub enum Command {
     /// Compile and measure every variant (unpruned/pruned × f32/fp16/int8 × ORT/tract, and the
     /// original): DIR/bench.md and .json (Pareto front marked), DIR/bench.svg and .png.
     Bench {
-        model: PathBuf,
-        #[arg(short = 'o', long = "out")]
-        out: PathBuf,
-        /// Camera blur map for models that take it as an input.
-        #[arg(long)]
-        psf: Option<PathBuf>,
-        /// Calibration frames for pruning and quantization; simulated when not given.
-        #[arg(long)]
-        calib: Option<PathBuf>,
-        /// Verification frames (YOLO labels beside them are not needed); simulated when not given.
-        #[arg(long)]
-        data: Option<PathBuf>,
-        /// Simulated verification frames when no --data is given.
+        #[command(flatten)]
+        on: Variants,
+        /// Simulated frames when no --data is given.
         #[arg(long, default_value_t = 4)]
         frames: usize,
         /// Timed runs per model and engine.
@@ -254,41 +244,16 @@ pub enum Command {
         /// Measure the FP16 variants on tract also where tract emulates f16 (x86_64: slow).
         #[arg(long)]
         tract_fp16: bool,
-        /// Total optimizer steps of the recovery by distillation, shared among the recipe's
-        /// recover passes (default: the recipe's); fewer steps train on proportionally fewer of
-        /// the recipe's frames, at least 512.
-        #[arg(long)]
-        recover_steps: Option<usize>,
-        /// Threads for ONNX Runtime and tract alike (default: every core).
-        #[arg(long)]
-        threads: Option<usize>,
-        #[arg(long)]
-        json: bool,
     },
     /// The deployment artifacts of one trained model, measured: DIR/f32 (lossless, tract),
     /// DIR/pruned-f32 (pruned and recovered), DIR/pruned-int8 (tract), DIR/rknn (the NPU's
     /// folder); one table of size, MACs, ORT and tract latency, mAP; DIR/ship.json.
     Ship {
-        model: PathBuf,
-        #[arg(short = 'o', long = "out")]
-        out: PathBuf,
-        /// Camera blur map for models that take it as an input.
-        #[arg(long)]
-        psf: Option<PathBuf>,
-        /// Calibration frames for pruning, recovery and quantization; simulated when not given.
-        #[arg(long)]
-        calib: Option<PathBuf>,
-        /// Frames to check on; YOLO labels beside them give mAP against labels.
-        #[arg(long)]
-        data: Option<PathBuf>,
-        /// Simulated frames to check on when no --data is given.
+        #[command(flatten)]
+        on: Variants,
+        /// Simulated frames when no --data is given.
         #[arg(long, default_value_t = 16)]
         frames: usize,
-        /// Total optimizer steps of the recovery by distillation, shared among the recipe's
-        /// recover passes (default: the recipe's); fewer steps train on proportionally fewer of
-        /// the recipe's frames, at least 512.
-        #[arg(long)]
-        recover_steps: Option<usize>,
         /// Timed runs per model and engine.
         #[arg(long, default_value_t = 20)]
         runs: usize,
@@ -296,11 +261,6 @@ pub enum Command {
         /// detections) an artifact must keep to be recommended for a CPU target.
         #[arg(long, default_value_t = 0.9)]
         min_kept: f64,
-        /// Threads for ONNX Runtime and tract alike (default: every core).
-        #[arg(long)]
-        threads: Option<usize>,
-        #[arg(long)]
-        json: bool,
     },
     /// Candidates against their reference under stressed frames (noise, gain/offset drift,
     /// saturated hot objects, dark/bright scenes, dead/stuck pixels, fixed-pattern noise, a
@@ -360,6 +320,35 @@ pub enum Command {
         #[arg(long)]
         json: bool,
     },
+}
+
+/// What `bench` and `ship` both take: one model, its folder of variants, and how to compile
+/// and measure them.
+#[derive(clap::Args)]
+pub struct Variants {
+    model: PathBuf,
+    #[arg(short = 'o', long = "out")]
+    out: PathBuf,
+    /// Camera blur map for models that take it as an input.
+    #[arg(long)]
+    psf: Option<PathBuf>,
+    /// Calibration frames for pruning, recovery and quantization; simulated when not given.
+    #[arg(long)]
+    calib: Option<PathBuf>,
+    /// Frames to check and time the variants on (YOLO labels beside them add mAP against
+    /// labels); simulated when not given.
+    #[arg(long)]
+    data: Option<PathBuf>,
+    /// Total optimizer steps of the recovery by distillation, shared among the recipe's
+    /// recover passes (default: the recipe's); fewer steps train on proportionally fewer of
+    /// the recipe's frames, at least 512.
+    #[arg(long)]
+    recover_steps: Option<usize>,
+    /// Threads for ONNX Runtime and tract alike (default: every core).
+    #[arg(long)]
+    threads: Option<usize>,
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Subcommand)]
@@ -524,7 +513,7 @@ pub fn run(cli: Cli) -> Result<u8> {
             }
             return verdict(&report, json, report.render(), report.passed);
         }
-        Command::Bench { model, out, psf, calib, data, frames, runs, tract_fp16, recover_steps, threads, json } => {
+        Command::Bench { on: Variants { model, out, psf, calib, data, recover_steps, threads, json }, frames, runs, tract_fp16 } => {
             let r = crate::bench::bench(&crate::bench::BenchRequest { model, out: out.clone(), psf, calib, data, frames, runs, tract_fp16, recover_steps, threads: threads_or_all(threads)? })?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);
@@ -533,7 +522,7 @@ pub fn run(cli: Cli) -> Result<u8> {
                 println!("wrote {}", crate::bench::out_files(&out));
             }
         }
-        Command::Ship { model, out, psf, calib, data, frames, recover_steps, runs, min_kept, threads, json } => {
+        Command::Ship { on: Variants { model, out, psf, calib, data, recover_steps, threads, json }, frames, runs, min_kept } => {
             if runs == 0 || frames == 0 {
                 anyhow::bail!("--runs and --frames must be at least 1");
             }

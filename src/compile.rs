@@ -66,6 +66,9 @@ pub struct CompileReport {
     /// Why a rebuild could give other bytes (a training the time cap stopped); empty: the
     /// same input, recipe, thread counts and machine give the same model.
     pub not_reproducible: Vec<String>,
+    /// The passes' trainings, for the manifest (the report has each in its pass's details).
+    #[serde(skip)]
+    pub trainings: Vec<crate::torch::train::Account>,
     pub millis: f64,
     pub output: String,
     pub target: crate::targets::Target,
@@ -135,7 +138,7 @@ pub fn compile_recipe(req: &CompileRequest, recipe: Recipe) -> Result<CompileRep
     } else {
         onnx::save(&model, &staged_model)?;
     }
-    let unrepeatable: Vec<String> = passes.iter().flat_map(|p| crate::manifest::not_reproducible(&p.details).into_iter().map(|w| format!("{}: {w}", p.pass))).collect();
+    let unrepeatable: Vec<String> = cx.trainings.iter().filter_map(|a| a.not_reproducible.as_ref().map(|w| format!("{}: {w}", a.pass))).collect();
     let report = CompileReport {
         tool_version: env!("CARGO_PKG_VERSION"),
         input: req.recorded(&req.model),
@@ -147,6 +150,7 @@ pub fn compile_recipe(req: &CompileRequest, recipe: Recipe) -> Result<CompileRep
         passes,
         warnings: crate::warn::take().into_iter().chain(cx.warnings).collect(),
         not_reproducible: unrepeatable,
+        trainings: cx.trainings,
         millis: t.elapsed().as_secs_f64() * 1e3,
         output: req.recorded(&out_model),
         target: req.target,
@@ -160,7 +164,7 @@ pub fn compile_recipe(req: &CompileRequest, recipe: Recipe) -> Result<CompileRep
 
 fn manifest(req: &CompileRequest, r: &CompileReport, model: &Path) -> Result<String> {
     use crate::manifest::{Hashed, Host, Inputs, Manifest, Versions};
-    let training = crate::manifest::trainings(&r.passes);
+    let training = r.trainings.clone();
     let cx = &req.context;
     let m = Manifest {
         tool: "pdi-compile".into(),

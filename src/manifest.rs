@@ -30,7 +30,7 @@ pub struct Manifest {
     pub versions: Versions,
     /// Each training run: pass, device, threads, steps taken of those planned.
     #[serde(default)]
-    pub training: Vec<serde_json::Value>,
+    pub training: Vec<crate::torch::train::Account>,
     /// True when the same input, recipe, threads and host give the same bytes.
     pub reproducible: bool,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -114,56 +114,12 @@ pub struct Versions {
 }
 
 impl Versions {
-    pub fn of(training: &[serde_json::Value]) -> Versions {
+    pub fn of(training: &[crate::torch::train::Account]) -> Versions {
         Versions {
             onnxruntime: crate::runtime::ort_lib::ORT_VERSION.into(),
             tract: TRACT_VERSION.into(),
-            torch: training.iter().find_map(|t| t["torch"].as_str()).map(String::from),
+            torch: training.first().map(|t| t.torch.clone()),
         }
-    }
-}
-
-/// Every training account in the pass reports (`training`, however deep), with its pass.
-pub fn trainings(passes: &[crate::pipeline::PassReport]) -> Vec<serde_json::Value> {
-    fn walk(v: &serde_json::Value, pass: &str, out: &mut Vec<serde_json::Value>) {
-        match v {
-            serde_json::Value::Object(m) => {
-                for (k, v) in m {
-                    if k == "training" && v.is_object() {
-                        let keep = ["device", "threads", "torch", "steps", "steps_planned", "capped"];
-                        let mut t = serde_json::json!({ "pass": pass });
-                        for key in keep {
-                            t[key] = v[key].clone();
-                        }
-                        out.push(t);
-                    } else {
-                        walk(v, pass, out);
-                    }
-                }
-            }
-            serde_json::Value::Array(a) => a.iter().for_each(|v| walk(v, pass, out)),
-            _ => {}
-        }
-    }
-    let mut out = Vec::new();
-    for p in passes {
-        walk(&p.details, &p.pass, &mut out);
-    }
-    out
-}
-
-/// Every `not_reproducible` note in a pass report, however deep (QAT's sits in quantize's).
-pub fn not_reproducible(v: &serde_json::Value) -> Vec<String> {
-    match v {
-        serde_json::Value::Object(m) => m
-            .iter()
-            .flat_map(|(k, v)| match (k.as_str(), v) {
-                ("not_reproducible", serde_json::Value::String(s)) => vec![s.clone()],
-                _ => not_reproducible(v),
-            })
-            .collect(),
-        serde_json::Value::Array(a) => a.iter().flat_map(not_reproducible).collect(),
-        _ => Vec::new(),
     }
 }
 

@@ -76,12 +76,18 @@ pub fn torch_python() -> Result<PathBuf> {
 /// event, or fails with the last line of its stderr. With `ranks` above 1 the worker runs
 /// as one torch.distributed job on this machine, through torchrun's launcher (its rank 0
 /// reports).
-pub fn run_worker(dir: &Path, script: &str, args: &[&std::ffi::OsStr], ranks: usize, mut on_event: impl FnMut(&serde_json::Value)) -> Result<serde_json::Value> {
-    use std::io::{BufRead, BufReader};
+pub fn run_worker(dir: &Path, script: &str, args: &[&std::ffi::OsStr], ranks: usize, on_event: impl FnMut(&serde_json::Value)) -> Result<serde_json::Value> {
+    run_python(&torch_python()?, dir, script, args, ranks, None, on_event)
+}
+
+/// [`run_worker`] with another Python (the toolkit's), run in `dir`; with `log`, every line
+/// it prints that is not an event goes to that file (the toolkit's own account).
+pub fn run_python(python: &Path, dir: &Path, script: &str, args: &[&std::ffi::OsStr], ranks: usize, log: Option<&Path>, mut on_event: impl FnMut(&serde_json::Value)) -> Result<serde_json::Value> {
+    use std::io::{BufRead, BufReader, Write};
     use std::process::Stdio;
-    let python = torch_python()?;
+    let mut log = log.map(|p| std::fs::File::create(p).with_context(|| format!("cannot write {}", p.display()))).transpose()?;
     let _turn = exclusive()?;
-    let mut command = Command::new(&python);
+    let mut command = Command::new(python);
     if ranks > 1 {
         command.args(["-m", "torch.distributed.run", "--standalone", "--nnodes", "1", "--nproc-per-node"]).arg(ranks.to_string());
     }
@@ -90,17 +96,33 @@ pub fn run_worker(dir: &Path, script: &str, args: &[&std::ffi::OsStr], ranks: us
         .args(args)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
+        .current_dir(dir)
         .spawn()
         .with_context(|| format!("cannot run {}", python.display()))?;
     let stderr = child.stderr.take().expect("piped");
-    let errors = std::thread::spawn(move || std::io::read_to_string(stderr).unwrap_or_default());
+    let mut stderr_log = log.as_ref().map(|f| f.try_clone()).transpose()?;
+    let errors = std::thread::spawn(move || {
+        let text = std::io::read_to_string(stderr).unwrap_or_default();
+        if let Some(f) = stderr_log.as_mut() {
+            let _ = f.write_all(text.as_bytes());
+        }
+        text
+    });
     let mut done = None;
     for line in BufReader::new(child.stdout.take().expect("piped")).lines() {
-        let Ok(event) = serde_json::from_str::<serde_json::Value>(&line?) else { continue };
+        let line = line?;
+        let Ok(event) = serde_json::from_str::<serde_json::Value>(&line).map_err(drop).and_then(|e| if e.get("event").is_some() { Ok(e) } else { Err(()) }) else {
+            if let Some(f) = log.as_mut() {
+                writeln!(f, "{line}")?;
+            }
+            continue;
+        };
         if event["event"] == "done" {
-            // Everything is written before `done`: what follows is the ranks' shutdown.
             done = Some(event);
-            break;
+            // Everything is written before `done`: what follows is the ranks' shutdown.
+            if ranks > 1 {
+                break;
+            }
         } else {
             on_event(&event);
         }

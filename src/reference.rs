@@ -167,8 +167,25 @@ fn module_doc(source: &str) -> String {
     out.trim().to_string()
 }
 
-/// (struct, field) → the field's `///` doc comment, for every `pub struct` in the file.
+/// The shared training schedule's source: a pass's `schedule` field stands for its fields.
+const SCHEDULE: &str = include_str!("torch/schedule.rs");
+
+/// (struct, field) → the field's `///` doc comment, for every `pub struct` in the file; a
+/// flattened `schedule: Schedule` field gives the struct the schedule's fields.
 fn field_docs(source: &str) -> std::collections::BTreeMap<(String, String), String> {
+    let schedule = plain_field_docs(SCHEDULE);
+    let mut out = plain_field_docs(source);
+    let with_schedule: Vec<String> = out.keys().filter(|(_, f)| f == "schedule").map(|(t, _)| t.clone()).filter(|t| t != "Schedule").collect();
+    for ty in with_schedule {
+        out.remove(&(ty.clone(), "schedule".to_string()));
+        for ((_, f), doc) in schedule.iter().filter(|((t, _), _)| t == "Schedule") {
+            out.insert((ty.clone(), f.clone()), doc.clone());
+        }
+    }
+    out
+}
+
+fn plain_field_docs(source: &str) -> std::collections::BTreeMap<(String, String), String> {
     let mut out = std::collections::BTreeMap::new();
     let (mut current, mut doc): (Option<String>, Vec<&str>) = (None, Vec::new());
     for line in source.lines() {

@@ -82,9 +82,44 @@ where
     T: serde::de::DeserializeOwned + serde::Serialize + Default,
     P: Pass + 'static,
 {
-    let options: T = if options.is_null() { T::default() } else { yaml_serde::from_value(options.clone()).map_err(|e| anyhow!("options of pass {name}: {e}"))? };
+    let options: T = if options.is_null() { T::default() } else { over_defaults(options).map_err(|e| anyhow!("options of pass {name}: {e}"))? };
     let resolved = yaml_serde::to_value(&options).map_err(|e| anyhow!("options of pass {name}: {e}"))?;
     Ok(Built { pass: Box::new(make(options)), options: resolved })
+}
+
+/// Options given as a mapping, laid over `T`'s defaults key by key: a key `T` does not have is
+/// refused, naming those it has. This is where unknown options are caught, for every pass,
+/// since serde cannot deny them beside a flattened field (the shared training schedule); and
+/// each pass's defaults fill what a recipe leaves out, the flattened fields' included.
+pub(crate) fn over_defaults<T>(given: &yaml_serde::Value) -> std::result::Result<T, String>
+where
+    T: serde::de::DeserializeOwned + serde::Serialize + Default,
+{
+    let (Some(given), Ok(yaml_serde::Value::Mapping(mut merged))) = (given.as_mapping(), yaml_serde::to_value(T::default())) else {
+        return yaml_serde::from_value(given.clone()).map_err(|e| e.to_string());
+    };
+    for (k, v) in given {
+        if !merged.contains_key(k) {
+            let known: Vec<String> = merged.keys().filter_map(|k| k.as_str()).map(|k| format!("`{k}`")).collect();
+            return Err(format!("unknown field `{}`, expected one of {}", k.as_str().unwrap_or("?"), known.join(", ")));
+        }
+        merged.insert(k.clone(), v.clone());
+    }
+    yaml_serde::from_value(yaml_serde::Value::Mapping(merged)).map_err(|e| e.to_string())
+}
+
+/// [`over_defaults`] for an option group that is off by default (`qat: {steps: 400}`).
+pub(crate) fn some_over_defaults<'de, D, T>(d: D) -> std::result::Result<Option<T>, D::Error>
+where
+    D: serde::Deserializer<'de>,
+    T: serde::de::DeserializeOwned + serde::Serialize + Default,
+{
+    use serde::Deserialize;
+    let v = yaml_serde::Value::deserialize(d)?;
+    if v.is_null() {
+        return Ok(None);
+    }
+    over_defaults(&v).map(Some).map_err(serde::de::Error::custom)
 }
 
 /// The graph of a model, or an error naming the pass.

@@ -19,14 +19,17 @@ pub struct PassContext {
     pub keep_outputs: Option<Vec<String>>,
     /// What the deployment needs (`--scene`): read by the scene passes.
     pub scene: Option<crate::scene::Scene>,
-    /// The model before the last structural change: `prune` or a scene pass leaves it here
-    /// ([`PassContext::record_cut`], [`PassContext::record_window`]), `recover` and QAT
-    /// distill from it.
+    /// The model before the first structural change: `prune` or a scene pass leaves it here
+    /// ([`PassContext::record_cut`], [`PassContext::record_window`]; a later cut composes
+    /// with it), `recover` and QAT distill from it.
     pub teacher: Option<Teacher>,
     /// Warnings of the passes run so far, each as "pass: what", in order.
     pub warnings: Vec<String>,
     /// The pass running now (the runner sets it), which names its warnings.
     pub pass: &'static str,
+    /// The trainings of the passes run so far ([`PassContext::record_training`]), for the
+    /// manifest and the reproducibility verdict.
+    pub trainings: Vec<crate::torch::train::Account>,
 }
 
 impl PassContext {
@@ -38,6 +41,11 @@ impl PassContext {
             eprintln!("warning: {line}");
             self.warnings.push(line);
         }
+    }
+
+    /// Records a training of the running pass.
+    pub fn record_training(&mut self, outcome: &crate::torch::train::Outcome) {
+        self.trainings.push(outcome.account(self.pass));
     }
 
     /// Records a channel (or class-row) cut: `kept` indexes the cut model's values. The model

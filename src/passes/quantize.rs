@@ -28,6 +28,7 @@ use crate::quant::params::{degenerate_range, quantize_weights, weight_rounding_s
 use crate::quant::plan::{plan, Plan};
 use crate::quant::qdq::{emit, EmitOptions};
 use crate::quant::range::{choose, Method};
+use crate::torch::schedule::Schedule;
 use anyhow::{anyhow, bail, Result};
 use std::collections::{BTreeSet, HashMap, HashSet};
 
@@ -82,6 +83,7 @@ pub struct Options {
     pub rounding_frames: usize,
     /// Quantization-aware recovery after emission (and mixed precision): the emitted model's
     /// integers trained on the calibration frames to match the float model. None: off.
+    #[serde(deserialize_with = "super::some_over_defaults")]
     pub qat: Option<Qat>,
     /// Past these, on the held-out frames against float, the INT8 model is broken rather than
     /// less accurate: the compile fails (exit 1) and writes no artifact.
@@ -108,35 +110,18 @@ impl Default for HardLimit {
     }
 }
 
-/// Quantization-aware recovery's schedule (`qat: {minutes: 5}`).
+/// Quantization-aware recovery's schedule (`qat: {minutes: 5}`). Unknown keys are refused
+/// where options are read (`passes::with`, through [`super::over_defaults`]).
 #[derive(serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields, default)]
+#[serde(default)]
 pub struct Qat {
-    /// Optimizer steps: the cosine schedule follows them.
-    pub steps: usize,
-    /// A cap on the training's wall time (none by default); when it bites the report says so
-    /// and the artifact is marked not reproducible.
-    pub minutes: Option<f64>,
-    /// Training threads, fixed; 0: every core of the compiling machine (recorded).
-    pub threads: usize,
-    /// Adam's step as a fraction of each tensor's largest magnitude: 1e-4 moves a 7-bit
-    /// weight about 0.006 of a grid step per iteration, so a few hundred steps can move it
-    /// one or two steps and no further.
-    pub lr: f64,
-    /// Frames per optimizer step.
-    pub batch: usize,
+    #[serde(flatten)]
+    pub schedule: Schedule,
     /// Training frames: the calibration frames, and more drawn after the held-out ones up to
     /// this count (0 or fewer than the calibration frames: those alone). A hundred epochs
     /// over 64 frames fit those frames; on the trained v8, 512 frames moved the held-out error
     /// from the classes to the boxes and left mAP where it was (README), so the default is 0.
     pub frames: usize,
-    /// `cuda` or `cpu`; empty: CUDA when torch sees it.
-    pub device: String,
-    /// Processes that train together, as `recover`'s `devices` (torchrun,
-    /// DistributedDataParallel: NCCL on GPUs, gloo on the CPU); `batch` must divide among them.
-    pub devices: usize,
-    /// On one GPU, the step captured once as a CUDA graph and replayed, as `recover`'s.
-    pub cuda_graph: bool,
     /// What the quantized model learns to reproduce: `float`, the quantize pass's input, or
     /// `original`, the model before an earlier `prune` (QAT then goes on recovering what
     /// pruning lost instead of stopping at the pruned float model's accuracy).
@@ -167,7 +152,7 @@ pub enum QatTeacher {
 
 impl Default for Qat {
     fn default() -> Self {
-        Qat { steps: 800, minutes: None, threads: 0, lr: 1e-4, batch: 8, frames: 0, device: String::new(), devices: 1, cuda_graph: true, teacher: QatTeacher::Float, scales: false, scale_lr: 1.0, box_edges: None, class_foreground: None }
+        Qat { schedule: Schedule::new(800, 1e-4, 8), frames: 0, teacher: QatTeacher::Float, scales: false, scale_lr: 1.0, box_edges: None, class_foreground: None }
     }
 }
 
@@ -202,8 +187,7 @@ impl Options {
             bail!("hard_limit needs max_rel_l2 > 0 and min_cosine in [-1, 1]");
         }
         if let Some(q) = &self.qat {
-            crate::prune::recover::check_schedule("qat: ", q.steps, q.minutes, q.lr, q.batch)?;
-            crate::prune::recover::check_devices("qat: ", q.devices, q.batch)?;
+            q.schedule.check("qat: ")?;
             if !(q.scale_lr > 0.0 && q.scale_lr.is_finite()) {
                 bail!("qat: scale_lr must be a positive number");
             }
@@ -373,7 +357,7 @@ impl Pass for Quantize {
                 let more = if wanted > calib && !overlap { image_feeds_from(&graph, &inf, cx.calib.as_deref(), drawn, wanted - calib, o.seed)?.0 } else { Vec::new() };
                 let train = feeds.iter().map(|f| f[0].1.clone()).chain(more.into_iter().filter_map(|f| f.into_iter().next().map(|(_, t)| t))).collect();
                 let groups = if q.scales { crate::quant::qat::scale_groups(&quantized, &emitted.dequantized, |v| current.root(v).to_string()) } else { Vec::new() };
-                let (model, report, errors) = quantization_aware(&float, original.as_ref(), quantized, train, &held_out, o, q, groups, threads)?;
+                let (model, report, errors) = quantization_aware(&float, original.as_ref(), quantized, train, &held_out, o, q, groups, threads, cx)?;
                 (model, Some(report), Some(errors))
             }
         };
@@ -505,28 +489,28 @@ fn original_teacher(cx: &PassContext) -> Result<super::Teacher> {
 /// Returns the model kept, the report, and the kept model's held-out output errors against
 /// its teacher.
 #[allow(clippy::too_many_arguments)]
-fn quantization_aware(float: &ModelProto, original: Option<&super::Teacher>, quantized: ModelProto, frames: Vec<crate::tensor::Tensor>, held_out: &[Vec<(String, crate::tensor::Tensor)>], o: &Options, q: &Qat, scale_groups: Vec<Vec<String>>, threads: usize) -> Result<(ModelProto, serde_json::Value, Vec<attribution::OutputError>)> {
-    if frames.len() < q.batch {
-        bail!("qat has {} calibration frames for batches of {}; raise calib_frames or lower qat's batch", frames.len(), q.batch);
+fn quantization_aware(float: &ModelProto, original: Option<&super::Teacher>, quantized: ModelProto, frames: Vec<crate::tensor::Tensor>, held_out: &[Vec<(String, crate::tensor::Tensor)>], o: &Options, q: &Qat, scale_groups: Vec<Vec<String>>, threads: usize, cx: &mut PassContext) -> Result<(ModelProto, serde_json::Value, Vec<attribution::OutputError>)> {
+    if frames.len() < q.schedule.batch {
+        bail!("qat has {} calibration frames for batches of {}; raise calib_frames or lower qat's batch", frames.len(), q.schedule.batch);
     }
-    let mut schedule = crate::quant::qat::schedule(q.steps, q.minutes, q.threads, q.lr, q.batch, o.seed, q.device.clone());
-    (schedule.devices, schedule.cuda_graph) = (q.devices, q.cuda_graph);
+    let mut schedule = crate::quant::qat::training(&q.schedule, o.seed);
     let (teacher, view, heads) = match original {
-        None => (float, None, crate::prune::recover::head_specs(float)?),
+        None => (float, None, crate::torch::heads::head_specs(float)?),
         Some(t) => {
             // Going on from recovery: its terms for a pruned student, on the head's logits
             // only (its neck features too scored 0.7900 against 0.8027 on the pruned v8, README).
             let r = super::recover::Options::default();
             (schedule.box_edges, schedule.class_foreground) = (r.box_edges, r.class_foreground);
-            (&t.model, crate::scene::compare::SceneView::of_teacher(float, &t.model)?, crate::prune::recover::head_specs_against(float, &t.kept)?)
+            (&t.model, crate::scene::compare::SceneView::of_teacher(float, &t.model)?, crate::torch::heads::head_specs_against(float, &t.kept)?)
         }
     };
     schedule.box_edges = q.box_edges.unwrap_or(schedule.box_edges);
     schedule.class_foreground = q.class_foreground.unwrap_or(schedule.class_foreground);
-    // The term weighs YOLOv8 class heads only (`recover::weigh_terms`).
+    // The term weighs YOLOv8 class heads only (`torch::train::weigh_terms`).
     let foreground = schedule.class_foreground > 0.0 && heads.iter().any(|h| h["kind"] == "v8cls");
     let student = crate::quant::qat::Student { scale_groups, scale_lr: q.scale_lr, ..crate::quant::qat::Student::symmetric(heads, o.weight_bits) };
     let t = crate::quant::qat::train(&quantized, teacher, student, &frames, held_out, &schedule, threads)?;
+    cx.record_training(&t.outcome);
     let before = attribution::output_errors(teacher, &quantized, held_out, threads, view.as_ref())?;
     let after = attribution::output_errors(teacher, &t.model, held_out, threads, view.as_ref())?;
     // Class scores differ most on the background cells, which rel L2 sums over and mAP does

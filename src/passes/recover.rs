@@ -19,46 +19,27 @@ use crate::ir::{infer, Graph};
 use crate::onnx::proto::ModelProto;
 use super::prune::by_name;
 use super::{Pass, PassContext, Teacher};
-use crate::prune::recover::{distill, Options as Distill};
+use crate::tensor::Tensor;
+use crate::torch::heads::{feature_specs, head_specs_against};
+use crate::torch::schedule::Schedule;
+use crate::torch::train::{train, Job, Outcome, Training};
+use std::collections::HashMap;
 use crate::quant::attribution::{output_errors, worst_rel_l2};
 use crate::scene::compare::SceneView;
 use anyhow::{anyhow, bail, Result};
 
+/// Unknown options are refused where options are read (`passes::with`): serde cannot deny
+/// them beside a flattened field.
 #[derive(serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields, default)]
+#[serde(default)]
 pub struct Options {
-    /// Optimizer steps of batch `batch`: the schedule (warm-up, cosine decay) follows them.
-    pub steps: usize,
-    /// Steps of linear warm-up at the start.
-    pub warmup: usize,
-    /// A cap on the training's wall time (none by default). When it bites, training stops
-    /// early, the report and stderr say so, and the artifact is marked not reproducible.
-    pub minutes: Option<f64>,
-    /// Training threads (torch and the CPU teacher), fixed so that sums come out the same;
-    /// 0: every core of the compiling machine, recorded in the manifest.
-    pub threads: usize,
-    /// Adam's learning rate at the top of the schedule.
-    pub lr: f64,
+    #[serde(flatten)]
+    pub schedule: Schedule,
     /// Training frames (unlabelled), at most what fits in 1 GiB of pixels; 16 more are held
     /// out to judge the result.
     pub frames: usize,
-    /// Frames per optimizer step.
-    pub batch: usize,
     /// Seed of frame order, augmentation and the simulated frames.
     pub seed: u64,
-    /// `cuda` or `cpu`; empty: CUDA when present.
-    pub device: String,
-    /// Processes that train together (torchrun, DistributedDataParallel: NCCL on GPUs, gloo
-    /// on the CPU). Each takes an equal share of every batch and the loss is normalized over
-    /// the whole batch, so the weights are one process's up to float summation order; on the
-    /// CPU they share `threads`. `batch` must divide among them.
-    pub devices: usize,
-    /// On one GPU, capture the training step once as a CUDA graph and replay it: one launch
-    /// a step instead of about a thousand from Python (on an H200 the pruned width-0.25 v5
-    /// at batch 32 trained at 2719 frames/s with the GPU 95% busy, against 855 frames/s and
-    /// 32% eagerly). `false`: each step eagerly. Where capture fails, training goes on
-    /// eagerly and the report says why.
-    pub cuda_graph: bool,
     /// What trains: every Conv weight and bias (`all`), or only the constants `crop-roi`
     /// fitted, its halos and pool corrections (`estimates`), the network's weights fixed.
     pub train: Train,
@@ -87,14 +68,10 @@ pub enum Train {
 impl Options {
     /// The ranges, checked when the recipe loads.
     pub fn check(&self) -> Result<()> {
-        crate::prune::recover::check_schedule("", self.steps, self.minutes, self.lr, self.batch)?;
-        if self.frames < self.batch {
-            bail!("frames ({}) must be at least batch ({})", self.frames, self.batch);
+        self.schedule.check("")?;
+        if self.frames < self.schedule.batch {
+            bail!("frames ({}) must be at least batch ({})", self.frames, self.schedule.batch);
         }
-        if self.warmup >= self.steps {
-            bail!("warmup ({}) must be fewer than steps ({})", self.warmup, self.steps);
-        }
-        crate::prune::recover::check_devices("", self.devices, self.batch)?;
         if ![self.box_edges, self.class_foreground].iter().all(|w| *w >= 0.0 && w.is_finite()) {
             bail!("box_edges and class_foreground must be finite and 0 or more");
         }
@@ -104,7 +81,7 @@ impl Options {
 
 impl Default for Options {
     fn default() -> Self {
-        Options { steps: 1000, warmup: 0, minutes: None, threads: 0, lr: 1e-3, frames: 512, batch: 16, seed: 0, device: String::new(), devices: 1, cuda_graph: true, train: Train::All, box_edges: 16.0, class_foreground: 4.0 }
+        Options { schedule: Schedule::new(1000, 1e-3, 16), frames: 512, seed: 0, train: Train::All, box_edges: 16.0, class_foreground: 4.0 }
     }
 }
 
@@ -137,8 +114,8 @@ impl Pass for Recover {
         let inf = infer(&graph);
         let frames = affordable_frames("recover", &graph, &inf, o.frames);
         let (feeds, source) = image_feeds(&graph, &inf, cx.calib.as_deref(), frames + HELD_OUT, o.seed.wrapping_add(17))?;
-        if feeds.len() < o.batch + 2 {
-            bail!("recover got {} frames from {source}; it needs at least {}", feeds.len(), o.batch + 2);
+        if feeds.len() < o.schedule.batch + 2 {
+            bail!("recover got {} frames from {source}; it needs at least {}", feeds.len(), o.schedule.batch + 2);
         }
         let held = HELD_OUT.min(feeds.len() / 4);
         let (train, check) = feeds.split_at(feeds.len() - held);
@@ -152,8 +129,9 @@ impl Pass for Recover {
             Train::All => None,
             Train::Estimates => Some(present(model, &estimates)?),
         };
-        let opts = Distill { steps: o.steps, warmup: o.warmup, minutes: o.minutes, threads: crate::prune::recover::resolve_threads(o.threads), lr: o.lr, batch: o.batch, seed: o.seed, device: o.device.clone(), devices: o.devices, cuda_graph: o.cuda_graph, window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground };
+        let opts = Training { schedule: Schedule { threads: o.schedule.threads(), ..o.schedule.clone() }, seed: o.seed, window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground };
         let outcome = distill(&mut trained, &teacher, &kept, &train.iter().map(image).collect::<Vec<_>>(), &check.iter().map(image).collect::<Vec<_>>(), &opts)?;
+        cx.record_training(&outcome);
         let after = errors(&trained)?;
         let kept = worst_rel_l2(&after) < worst_rel_l2(&before);
         if kept {
@@ -183,4 +161,13 @@ fn present(model: &ModelProto, estimates: &[String]) -> Result<Vec<String>> {
         bail!("recover's `train: estimates` trains the halos and pool corrections crop-roi fitted, and this model has none: put it right after crop-roi (with a scene roi and `halo` other than zero)");
     }
     Ok(left)
+}
+
+/// Trains `student`'s weights towards `teacher` on `frames` (each [1, 1, H, W]), measuring on
+/// `held_out`; writes them into `student`.
+fn distill(student: &mut ModelProto, teacher: &ModelProto, kept: &HashMap<String, Vec<usize>>, frames: &[Tensor], held_out: &[Tensor], o: &Training) -> Result<Outcome> {
+    let heads = head_specs_against(student, kept)?;
+    let features = feature_specs(student, kept)?;
+    let job = Job { heads, features, extra: serde_json::json!({}), outputs: false, label: "recover" };
+    Ok(train(student, teacher, frames, held_out, o, job)?.0)
 }

@@ -34,54 +34,41 @@ use crate::quant::at_points;
 use crate::quant::attribution::{output_errors_at, worst_rel_l2, OutputError};
 use ort::session::builder::GraphOptimizationLevel;
 use crate::quant::qat::{self, Student};
-use crate::targets::rknn::{npu_input, DATASET_FRAMES};
+use crate::targets::rknn::DATASET_FRAMES;
+use crate::targets::rknn_toolkit::npu_input;
 use crate::targets::rknn_convert::OUTPUT_STEP;
 use crate::targets::rknn_points::{self, Point};
 use crate::tensor::Tensor;
+use crate::torch::schedule::Schedule;
 use anyhow::{anyhow, bail, Result};
 use std::collections::BTreeMap;
 
+/// Unknown options are refused where options are read (`passes::with`).
 #[derive(serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields, default)]
+#[serde(default)]
 pub struct Options {
-    /// Optimizer steps: the cosine schedule follows them.
-    pub steps: usize,
-    /// A cap on the training's wall time (none by default); when it bites the report says so
-    /// and the artifact is marked not reproducible.
-    pub minutes: Option<f64>,
-    /// Training threads, fixed; 0: every core of the compiling machine (recorded).
-    pub threads: usize,
-    /// Adam's step as a fraction of each tensor's largest magnitude (as `quantize`'s `qat`).
-    pub lr: f64,
-    /// Frames per optimizer step.
-    pub batch: usize,
+    #[serde(flatten)]
+    pub schedule: Schedule,
     /// Training frames (fresh augmentation each epoch).
     pub frames: usize,
     /// Seed of frame order, augmentation and the simulated frames.
     pub seed: u64,
-    /// `cuda` or `cpu`; empty: CUDA when torch sees it.
-    pub device: String,
-    /// Processes that train together, as `recover`'s `devices` (torchrun,
-    /// DistributedDataParallel: NCCL on GPUs, gloo on the CPU); `batch` must divide among them.
-    pub devices: usize,
-    /// On one GPU, the step captured once as a CUDA graph and replayed, as `recover`'s.
-    pub cuda_graph: bool,
 }
 
 impl Options {
     /// The ranges, checked when the recipe loads.
     pub fn check(&self) -> Result<()> {
-        crate::prune::recover::check_schedule("", self.steps, self.minutes, self.lr, self.batch)?;
-        if self.frames < self.batch {
-            bail!("rknn-qat has {} frames for batches of {}; raise frames or lower batch", self.frames, self.batch);
+        self.schedule.check("")?;
+        if self.frames < self.schedule.batch {
+            bail!("rknn-qat has {} frames for batches of {}; raise frames or lower batch", self.frames, self.schedule.batch);
         }
-        crate::prune::recover::check_devices("", self.devices, self.batch)
+        Ok(())
     }
 }
 
 impl Default for Options {
     fn default() -> Self {
-        Options { steps: 800, minutes: None, threads: 0, lr: 1e-4, batch: 8, frames: 64, seed: 0, device: String::new(), devices: 1, cuda_graph: true }
+        Options { schedule: Schedule::new(800, 1e-4, 8), frames: 64, seed: 0 }
     }
 }
 
@@ -163,12 +150,12 @@ impl Pass for RknnQat {
         let params: BTreeMap<String, (f64, i32)> = trained.iter().filter_map(|(v, (_, p))| Some((v.clone(), p.int8()?))).collect();
         let (quantized, dequantized) = at_points::emit(model, &params)?;
 
-        let heads = crate::prune::recover::split_head_specs(model, &dequantized)?;
-        let mut schedule = qat::schedule(o.steps, o.minutes, o.threads, o.lr, o.batch, o.seed, o.device.clone());
-        (schedule.devices, schedule.cuda_graph) = (o.devices, o.cuda_graph);
+        let heads = crate::torch::heads::split_head_specs(model, &dequantized)?;
+        let training = qat::training(&o.schedule, o.seed);
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         let student = Student { heads, scale_groups: Vec::new(), scale_lr: 1.0, weight_range: at_points::WEIGHT_RANGE, pin_extremes: true };
-        let t = qat::train(&quantized, model, student, &frames, &held, &schedule, threads)?;
+        let t = qat::train(&quantized, model, student, &frames, &held, &training, threads)?;
+        cx.record_training(&t.outcome);
         // The NPU sums in exact int32: ONNX Runtime's reference kernels compute what it does,
         // its x86 integer kernels do not (they saturate with 8-bit weights without VNNI).
         let before = output_errors_at(model, &quantized, &held, threads, None, GraphOptimizationLevel::Disable)?;

@@ -17,7 +17,7 @@
 //! b' = b + Σ W·E[X at tap] − Σ W'·E[X' at tap], with tap means over the zero-padded
 //! input taken exactly (borders matter at 8x6 strides).
 
-use super::ridge::{spread_positions, Moments};
+use crate::ridge::{spread_positions, Moments};
 use crate::ir::{infer, Graph};
 use crate::onnx::attr;
 use crate::onnx::edit::{expose_outputs, initializer, set_input_constant};

@@ -5,8 +5,6 @@
 pub mod apply;
 pub mod compensate;
 pub mod importance;
-pub mod recover;
-pub mod ridge;
 pub mod sensitivity;
 
 use crate::analysis::channels::ChannelAnalysis;

@@ -13,7 +13,8 @@
 
 use crate::metrics::tensor_error::ErrorSums;
 use crate::onnx::proto::ModelProto;
-use crate::prune::recover::{self, Job, Outcome};
+use crate::torch::schedule::Schedule;
+use crate::torch::train::{self, Job, Outcome, Training};
 use crate::runtime::ort_runtime::OrtRuntime;
 use crate::runtime::Runtime;
 use crate::tensor::Tensor;
@@ -26,12 +27,11 @@ use std::collections::BTreeMap;
 /// sees and IoU at 0.95 does.
 pub const EDGE_WEIGHT: f64 = 1.0;
 
-/// The distillation schedule both QAT passes train with: no window or subset (every weight of
-/// the whole frame), the box edges at `EDGE_WEIGHT`, and no class foreground term (QAT was
-/// measured without it; `recover`'s default is for pruned students).
-pub fn schedule(steps: usize, minutes: Option<f64>, threads: usize, lr: f64, batch: usize, seed: u64, device: String) -> recover::Options {
-    let threads = recover::resolve_threads(threads);
-    recover::Options { steps, warmup: 0, minutes, threads, lr, batch, seed, device, devices: 1, cuda_graph: true, window: None, trainable: None, box_edges: EDGE_WEIGHT, class_foreground: 0.0 }
+/// What both QAT passes train with: their schedule (threads resolved), no window or subset
+/// (every weight of the whole frame), the box edges at `EDGE_WEIGHT`, and no class foreground
+/// term (QAT was measured without it; `recover`'s default is for pruned students).
+pub fn training(schedule: &Schedule, seed: u64) -> Training {
+    Training { schedule: Schedule { threads: schedule.threads(), ..schedule.clone() }, seed, window: None, trainable: None, box_edges: EDGE_WEIGHT, class_foreground: 0.0 }
 }
 
 pub struct Trained {
@@ -63,8 +63,8 @@ pub fn scale_groups(quantized: &ModelProto, dequantized: &BTreeMap<String, Strin
     groups.into_values().collect()
 }
 
-/// What the worker trains: the head values it matches (`recover::head_specs`, or
-/// `recover::split_head_specs` for a model from rknn-legalize), the weights' range, and
+/// What the worker trains: the head values it matches (`torch::heads::head_specs`, or
+/// `torch::heads::split_head_specs` for a model from rknn-legalize), the weights' range, and
 /// whether weights at the range's ends stay there (a toolchain that requantizes the
 /// dequantized weights per channel by their peak then finds the same grid).
 pub struct Student {
@@ -90,14 +90,14 @@ impl Student {
 /// Trains the integers of `quantized` (emitted from `float`) to reproduce `float`'s head
 /// logits on `frames`; `held_out` (feeds of one image input) judge it, run on ONNX Runtime
 /// with `threads`.
-pub fn train(quantized: &ModelProto, float: &ModelProto, student: Student, frames: &[Tensor], held_out: &[Vec<(String, Tensor)>], o: &recover::Options, threads: usize) -> Result<Trained> {
+pub fn train(quantized: &ModelProto, float: &ModelProto, student: Student, frames: &[Tensor], held_out: &[Vec<(String, Tensor)>], o: &Training, threads: usize) -> Result<Trained> {
     let held: Vec<Tensor> = held_out.iter().map(|f| f[0].1.clone()).collect();
     // Steps relative to each tensor's largest magnitude: an int8 weight, an int32 bias (in
     // units thousands of times smaller) and a float layer's weight all move alike.
     let (qmin, qmax) = student.weight_range;
     let extra = serde_json::json!({"weight_qmin": qmin, "weight_qmax": qmax, "relative_lr": true, "pin_extremes": student.pin_extremes, "scale_groups": student.scale_groups, "scale_lr": student.scale_lr});
     let mut model = quantized.clone();
-    let (outcome, fake_quant) = recover::train(&mut model, float, frames, &held, o, Job { heads: student.heads, features: Vec::new(), extra, outputs: true, label: "qat" })?;
+    let (outcome, fake_quant) = train::train(&mut model, float, frames, &held, o, Job { heads: student.heads, features: Vec::new(), extra, outputs: true, label: "qat" })?;
     let names: Vec<String> = model.graph.as_ref().map(|g| g.output.iter().map(|o| o.name.clone()).collect()).unwrap_or_default();
     let fake_quant: Vec<(String, Vec<f32>)> = names.into_iter().zip(fake_quant).map(|(n, t)| Ok((n, t.as_f32().ok_or_else(|| anyhow!("fake-quantized outputs are f32"))?.to_vec()))).collect::<Result<_>>()?;
     let reference = run_ort(&model, GraphOptimizationLevel::Disable, held_out, threads)?;

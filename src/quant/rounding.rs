@@ -59,7 +59,7 @@ pub fn learn(float: &ModelProto, graph: &Graph, plan: &Plan, params: &HashMap<St
     // Head convolutions are measured through what the decode makes of them (scores through a
     // sigmoid, DFL boxes through their softmax); a model whose head is not recognized
     // measures them raw.
-    let heads: HashMap<String, serde_json::Value> = crate::prune::recover::head_specs(float)
+    let heads: HashMap<String, serde_json::Value> = crate::torch::heads::head_specs(float)
         .unwrap_or_default()
         .into_iter()
         .filter_map(|h| {
@@ -97,7 +97,7 @@ pub fn learn(float: &ModelProto, graph: &Graph, plan: &Plan, params: &HashMap<St
     let work = tempfile::tempdir()?;
     let dir = work.path();
     crate::onnx::save(float, &dir.join("model.onnx"))?;
-    crate::prune::recover::write_frames(frames, &dir.join("frames.npy"))?;
+    crate::torch::train::write_frames(frames, &dir.join("frames.npy"))?;
     let out = dir.join("learned");
     std::fs::create_dir(&out)?;
     let config = serde_json::json!({

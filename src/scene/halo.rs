@@ -35,7 +35,7 @@ use crate::ir::{infer, Graph};
 use crate::onnx::attr;
 use crate::onnx::edit::{add_constant, fresh_name};
 use crate::onnx::proto::{GraphProto, ModelProto, NodeProto};
-use crate::prune::ridge::Moments;
+use crate::ridge::Moments;
 use crate::scene::Roi;
 use crate::tensor::{Tensor, TensorData};
 use anyhow::Result;

@@ -17,7 +17,7 @@ use super::halo::{constant, node, place, Mode};
 use crate::ir::{infer, Graph};
 use crate::onnx::attr;
 use crate::onnx::proto::{GraphProto, ModelProto};
-use crate::prune::ridge::Moments;
+use crate::ridge::Moments;
 use crate::scene::Roi;
 use anyhow::Result;
 

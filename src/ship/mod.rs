@@ -17,7 +17,7 @@
 pub mod recommend;
 pub mod render;
 
-use crate::bench::{last_pass_of, time_together, with_recover_steps, Failed, Timing, DETECT_F32, DETECT_INT8};
+use crate::variants::{last_pass_of, recipe, time_together, with_recover_steps, Failed, Timing};
 use crate::compile::{compile, CompileReport, CompileRequest};
 use crate::fsutil::{ensure_dir, write_atomic, StagedDir};
 use crate::pipeline::{PassContext, Recipe};
@@ -29,7 +29,6 @@ use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-const DETECT_PRUNED_RKNN: &str = include_str!("../../passes/detect-pruned-rknn.yaml");
 
 pub struct ShipRequest {
     pub model: PathBuf,
@@ -89,14 +88,14 @@ pub struct ShipReport {
 /// The compiles: (name, source variant or the original, recipe text, target).
 fn stages(req: &ShipRequest) -> Result<Vec<(&'static str, Option<&'static str>, String, Target)>> {
     // The NPU recipe without its legalization: pruned in 16-channel steps, recovered.
-    let mut pruned = Recipe::parse(&with_recover_steps(DETECT_PRUNED_RKNN, req.recover_steps)?)?;
+    let mut pruned = Recipe::parse(&with_recover_steps(recipe("detect-pruned-rknn"), req.recover_steps)?)?;
     pruned.passes.retain(|p| p.name != "rknn-legalize");
     pruned.name = "pruned-f32".into();
     Ok(vec![
-        ("f32", None, DETECT_F32.to_string(), Target::Tract),
+        ("f32", None, recipe("detect-f32").to_string(), Target::Tract),
         ("pruned-f32", None, pruned.to_yaml()?, Target::Tract),
-        ("pruned-int8", Some("pruned-f32"), last_pass_of(DETECT_INT8, "int8")?, Target::Onnx),
-        ("rknn", Some("pruned-f32"), last_pass_of(DETECT_PRUNED_RKNN, "rknn")?, Target::Rknn),
+        ("pruned-int8", Some("pruned-f32"), last_pass_of(recipe("detect-int8"), "int8")?, Target::Onnx),
+        ("rknn", Some("pruned-f32"), last_pass_of(recipe("detect-pruned-rknn"), "rknn")?, Target::Rknn),
     ])
 }
 

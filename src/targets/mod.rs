@@ -5,6 +5,7 @@ pub mod rknn;
 pub mod rknn_convert;
 pub mod rknn_fp16;
 pub mod rknn_points;
+pub mod rknn_toolkit;
 pub mod tract;
 pub mod tract_tiles;
 

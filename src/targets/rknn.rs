@@ -11,6 +11,7 @@
 //! The model must come out of `rknn-legalize` (float, per-stride outputs, head layout in its
 //! metadata): the toolkit quantizes it itself, from these frames.
 
+use super::rknn_toolkit::{pixels, PIXEL_SCALE};
 use crate::calib_frames::calibration_frames;
 use crate::detect::split_head::HeadLayout;
 use crate::fsutil::{ensure_dir, write_atomic};
@@ -22,8 +23,6 @@ use std::path::Path;
 /// Calibration frames written for the toolkit (more adds build time, not accuracy, on
 /// models this size: measured cosine is flat from 16 frames up).
 pub const DATASET_FRAMES: usize = 32;
-/// Frames reach the NPU as 8-bit pixels; the model reads [0, 1]: the NPU divides by 255.
-pub const PIXEL_SCALE: f32 = 255.0;
 /// Highest ONNX IR version RKNN-Toolkit2 2.5 reads.
 pub const MAX_IR_VERSION: i64 = 9;
 
@@ -182,13 +181,3 @@ fn default_hybrid_cosine() -> f64 {
     0.98
 }
 
-/// A [0, 1] frame as the model sees it on the NPU: its 8-bit pixels divided by 255.
-pub fn npu_input(v: &[f32]) -> Vec<f32> {
-    pixels(v).into_iter().map(|p| p / PIXEL_SCALE).collect()
-}
-
-/// A [0, 1] frame as the 8-bit pixel values the NPU is fed (rounded: the camera delivers
-/// integers, and the reference run gets exactly these values divided by 255).
-pub fn pixels(v: &[f32]) -> Vec<f32> {
-    v.iter().map(|&x| (x.clamp(0.0, 1.0) * PIXEL_SCALE).round()).collect()
-}

@@ -9,7 +9,8 @@
 //! layers the toolkit placed on the CPU (none is the only acceptable answer for a model
 //! made of NPU ops), and how many detections the two agree on after post-processing.
 
-use super::rknn::{npu_input, pixels, RknnConfig};
+use super::rknn::RknnConfig;
+use super::rknn_toolkit::{self, npu_input, pixels};
 use crate::analysis::head::HeadKind;
 use crate::calib_frames::calibration_frames;
 use crate::detect::split_head::{detect, HeadLayout};
@@ -22,10 +23,8 @@ use anyhow::{anyhow, bail, Context, Result};
 use serde::Serialize;
 use std::collections::HashMap;
 use std::path::PathBuf;
-use std::process::Command;
 use std::time::Instant;
 
-pub(crate) const WORKER: &str = include_str!("rknn_worker.py");
 /// Seed of the validation frames; the calibration set uses seed 0.
 const VALIDATION_SEED: u64 = 1_000_003;
 /// One step of an 8-bit output over [0, 1] (the NPU writes its sigmoid scores as int8): an
@@ -105,7 +104,6 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
     if req.frames == 0 {
         bail!("--frames must be at least 1");
     }
-    let python = crate::pyenv::toolkit_python()?;
 
     let [_, _, h, w] = config.input.shape;
     let set = calibration_frames(req.data.as_deref(), req.frames, h, w, VALIDATION_SEED)?;
@@ -117,32 +115,20 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
         frame_paths.push(p);
     }
     let rknn_tmp = dir.join("model.rknn.tmp");
-    let result_path = work.path().join("result.json");
     let job = serde_json::json!({
         "config": config,
         "dir": std::path::absolute(dir)?,
         "frames": frame_paths,
         "out_dir": work.path(),
         "rknn": std::path::absolute(&rknn_tmp)?,
-        "result": result_path,
     });
-    let job_path = work.path().join("job.json");
-    std::fs::write(&job_path, serde_json::to_vec(&job)?)?;
-    let worker = work.path().join("rknn_worker.py");
-    std::fs::write(&worker, WORKER)?;
     eprintln!("rknn-convert: building {} with rknn-toolkit2 and simulating {} frames", dir.join("model.rknn").display(), set.frames.len());
     let log_path = dir.join("rknn_build.log");
-    let log = std::fs::File::create(&log_path)?;
-    let _turn = crate::pyenv::exclusive()?;
-    let status = Command::new(&python).arg(&worker).arg(&job_path).current_dir(work.path()).stdout(log.try_clone()?).stderr(log).status().with_context(|| format!("cannot run {}", python.display()))?;
-    let log = String::from_utf8_lossy(&std::fs::read(&log_path)?).into_owned();
-    if !status.success() {
+    let result = rknn_toolkit::run(work.path(), &job, &log_path).inspect_err(|_| {
         let _ = std::fs::remove_file(&rknn_tmp);
-        let last = log.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message");
-        bail!("rknn-toolkit2 failed: {last} (full log: {})", log_path.display());
-    }
+    })?;
     std::fs::rename(&rknn_tmp, dir.join("model.rknn"))?;
-    let result: serde_json::Value = serde_json::from_slice(&std::fs::read(&result_path)?)?;
+    let log = String::from_utf8_lossy(&std::fs::read(&log_path)?).into_owned();
 
     let placement = placement(&log);
     if placement.is_empty() {

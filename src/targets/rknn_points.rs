@@ -8,13 +8,12 @@
 //! model trained for the NPU (`rknn-qat`) trains on these points, and `rknn-convert` writes
 //! their ranges back into the toolkit's configuration before it builds.
 
-use super::rknn::{pixels, PIXEL_SCALE};
+use super::rknn_toolkit::{pixels, PIXEL_SCALE};
 use crate::onnx::proto::{GraphProto, ModelProto, NodeProto, StringStringEntryProto};
 use crate::tensor::Tensor;
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, Result};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-use std::process::Command;
 
 /// Metadata key of the points a model was trained on (`rknn-qat`), read by `--target rknn`.
 pub const METADATA_KEY: &str = "pdi.rknn_trained_points";
@@ -52,7 +51,6 @@ impl Point {
 /// `outputs`), calibrated on `frames` ([1, C, H, W] in [0, 1], fed as 8-bit pixels as the
 /// NPU gets them) with the target's settings (w8a8, min/max, per-channel weights).
 pub fn toolkit_points(model: &ModelProto, frames: &[Tensor], outputs: &[String]) -> Result<BTreeMap<String, Point>> {
-    let python = crate::pyenv::toolkit_python()?;
     let work = tempfile::tempdir()?;
     crate::onnx::save(model, &work.path().join("model.onnx"))?;
     let mut list = String::new();
@@ -63,7 +61,6 @@ pub fn toolkit_points(model: &ModelProto, frames: &[Tensor], outputs: &[String])
     }
     std::fs::write(work.path().join("dataset.txt"), list)?;
     let channels = frames.first().and_then(|f| f.shape.get(1)).copied().unwrap_or(1);
-    let result = work.path().join("result.json");
     let job = serde_json::json!({
         "mode": "points",
         "model": work.path().join("model.onnx"),
@@ -72,18 +69,8 @@ pub fn toolkit_points(model: &ModelProto, frames: &[Tensor], outputs: &[String])
         "mean_values": [vec![0.0; channels]],
         "std_values": [vec![PIXEL_SCALE; channels]],
         "target_platform": "rk3588",
-        "result": result,
     });
-    std::fs::write(work.path().join("job.json"), serde_json::to_vec(&job)?)?;
-    std::fs::write(work.path().join("rknn_worker.py"), super::rknn_convert::WORKER)?;
-    let _turn = crate::pyenv::exclusive()?;
-    let out = Command::new(&python).arg("rknn_worker.py").arg("job.json").current_dir(work.path()).output().with_context(|| format!("cannot run {}", python.display()))?;
-    if !out.status.success() {
-        let log = String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr);
-        let last = log.lines().rev().find(|l| !l.trim().is_empty()).unwrap_or("no message");
-        bail!("rknn-toolkit2 could not plan the quantization: {last}");
-    }
-    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&result)?)?;
+    let r = super::rknn_toolkit::run(work.path(), &job, &work.path().join("toolkit.log")).map_err(|e| anyhow!("rknn-toolkit2 could not plan the quantization: {e:#}"))?;
     serde_json::from_value(r["points"].clone()).map_err(|e| anyhow!("the toolkit's quantization points did not parse: {e}"))
 }
 

@@ -2,11 +2,13 @@
 
 Reads a job (JSON). `build` (rknn-convert): from the folder's rknn.yaml as JSON, builds the
 .rknn file, runs the toolkit's simulator on the validation frames and saves every output as
-.npy; writes a result JSON with the toolkit's version. The toolkit's native library prints
-its layer placement table to stdout in verbose mode; the caller keeps stdout as the log.
+.npy; its result (with the toolkit's version) is its `done` event. The toolkit's native
+library prints its layer placement table to stdout in verbose mode; the caller keeps what
+is not an event as the log.
 `points` (the rknn-qat pass): the toolkit's quantization points for a model, i.e. every
 tensor its step-1 quantization config lists, with its type and parameters.
 """
+import ctypes
 import json
 import os
 import sys
@@ -76,9 +78,8 @@ def main(job_path):
         for name, o in zip(cfg["outputs"], outs):
             np.save(f"{job['out_dir']}/{i:04d}_{name}.npy", np.ascontiguousarray(o, dtype=np.float32))
     r.release()
-    with open(job["result"], "w") as f:
-        json.dump({"toolkit": version("rknn-toolkit2"), "ranges_set": written["set"], "ranges_absent": written["absent"],
-                   "trained_points": trained_count, "fp16_built": fp16_built}, f)
+    done({"toolkit": version("rknn-toolkit2"), "ranges_set": written["set"], "ranges_absent": written["absent"],
+          "trained_points": trained_count, "fp16_built": fp16_built})
 
 
 def write_points(path, trained):
@@ -127,8 +128,16 @@ def points(job):
     for name, p in params.items():
         one = lambda k: p[k][0] if isinstance(p.get(k), list) and p[k] else None
         out[name] = {"dtype": p["dtype"], "min": one("min"), "max": one("max"), "scale": one("scale"), "zero_point": one("zero_point")}
-    with open(job["result"], "w") as f:
-        json.dump({"toolkit": version("rknn-toolkit2"), "points": out}, f)
+    done({"toolkit": version("rknn-toolkit2"), "points": out})
+
+
+def done(result):
+    """The result, as a line of its own on stdout (the workers' protocol: `pyenv::run_python`).
+    The toolkit's native library writes to the same descriptor through C's buffers: those go
+    first, and the line starts fresh."""
+    sys.stdout.flush()
+    ctypes.CDLL(None).fflush(None)
+    print("\n" + json.dumps(dict(result, event="done")), flush=True)
 
 
 if __name__ == "__main__":

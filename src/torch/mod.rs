@@ -3,6 +3,12 @@
 //! for several processes), the op check (`opcheck.py`) and learned rounding (`rounding.py`).
 //! Every job writes all of them into its scratch folder and starts one through
 //! `pyenv::run_worker`'s protocol (JSON events on stdout, the last stderr line on failure).
+//! The Rust half: the shared schedule (`schedule`), the specs of what a training matches
+//! (`heads`), and the client that runs a training and takes its weights back (`train`).
+
+pub mod heads;
+pub mod schedule;
+pub mod train;
 
 use anyhow::Result;
 use std::ffi::OsStr;

@@ -1,8 +1,8 @@
 //! Dependencies point down: each top-level module of `src/` has a layer, and a module imports
 //! only from its own layer or below; no two modules import each other, directly or through
-//! others (a circle within a layer is a circle too); `passes` is imported only by the
-//! pipeline and the commands. The test fails on an import that breaks any of these, and on a
-//! module that has no layer.
+//! others (a circle within a layer is a circle too), and no two files either; `passes` is
+//! imported only by the pipeline and the commands, `prune` only by `passes`. The tests fail
+//! on an import that breaks any of these, and on a module that has no layer.
 
 use crate::common::repo;
 use std::collections::{BTreeMap, BTreeSet};
@@ -11,16 +11,19 @@ use std::collections::{BTreeMap, BTreeSet};
 const LAYERS: &[&[&str]] = &[
     &["tensor", "fsutil", "warn", "canvas", "clock"],
     &["onnx", "ir"],
-    &["analysis", "metrics", "detect", "optics", "inspect"],
+    &["analysis", "metrics", "detect", "optics", "inspect", "ridge"],
     &["runtime", "frames", "dataset", "calib_frames", "pyenv", "torch"],
-    // analyses and rewrites
-    &["prune", "quant", "scene", "targets"],
+    // analyses and rewrites: quantization compares a crop with its model through the scene's
+    // view; the targets read the scene's metadata and emulate the toolkit's points as QDQ
+    &["prune", "scene"],
+    &["quant"],
+    &["targets"],
     &["passes"],
     &["pipeline"],
     // libraries the commands share: running an artifact, comparing two models, the manifest
     &["deploy", "verify", "manifest"],
-    // commands
-    &["compile", "rebuild", "run", "ship", "bench", "stress", "cli", "fuzz_targets", "reference"],
+    // commands, and what bench and ship share (variants compiled and timed side by side)
+    &["compile", "rebuild", "run", "ship", "bench", "variants", "stress", "cli", "fuzz_targets", "reference"],
 ];
 
 /// Top-level module → the top-level modules its files name through `crate::`.
@@ -73,6 +76,9 @@ fn dependencies_point_down() {
             if to == "passes" && lf < layer("pipeline").unwrap() {
                 problems.push(format!("{from} imports passes: only the pipeline and the commands may"));
             }
+            if to == "prune" && from != "passes" {
+                problems.push(format!("{from} imports prune: only passes may (training lives in torch, least squares in ridge)"));
+            }
         }
     }
     for circle in circles(&edges) {
@@ -115,6 +121,86 @@ fn circles(edges: &BTreeMap<String, BTreeSet<String>>) -> Vec<Vec<String>> {
         }
     }
     found
+}
+
+/// File-level imports: each file of `src/` by its module path (`targets::rknn`; a folder's
+/// `mod.rs` by the folder's), to the files it names through `crate::` or `super::`. A module
+/// naming its own descendants declares or re-exports them: not an import.
+fn file_imports() -> BTreeMap<String, BTreeSet<String>> {
+    let src = repo().join("src");
+    let mut files = BTreeMap::new();
+    let mut stack = vec![src.clone()];
+    while let Some(dir) = stack.pop() {
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if p.extension().is_some_and(|x| x == "rs") {
+                let rel = p.strip_prefix(&src).unwrap().with_extension("");
+                let mut parts: Vec<String> = rel.components().map(|c| c.as_os_str().to_string_lossy().into_owned()).collect();
+                if parts.last().is_some_and(|l| l == "mod") {
+                    parts.pop();
+                }
+                if parts != ["lib"] && parts != ["main"] {
+                    files.insert(parts.join("::"), std::fs::read_to_string(&p).unwrap());
+                }
+            }
+        }
+    }
+    let is_mod_rs = |m: &str| repo().join("src").join(m.replace("::", "/")).join("mod.rs").exists();
+    // The longest module path that `path` starts with.
+    let resolve = |path: &[String]| (1..=path.len()).rev().map(|n| path[..n].join("::")).find(|m| files.contains_key(m));
+    let ident = |t: &str| -> String { t.chars().take_while(|c| c.is_alphanumeric() || *c == '_').collect() };
+    let mut edges: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+    for (module, text) in &files {
+        let own: Vec<String> = module.split("::").map(str::to_string).collect();
+        let parent: Vec<String> = if is_mod_rs(module) { own[..own.len() - 1].to_vec() } else { own[..own.len().saturating_sub(1)].to_vec() };
+        let mut named = BTreeSet::new();
+        // Comments name modules in links and prose, not imports.
+        let text: String = text.lines().filter(|l| !l.trim_start().starts_with("//")).collect::<Vec<_>>().join("\n");
+        for (root, base) in [("crate::", Vec::new()), ("super::", parent.clone())] {
+            for (i, _) in text.match_indices(root) {
+                if text[..i].ends_with(|c: char| c.is_alphanumeric() || c == '_' || c == ':') {
+                    continue;
+                }
+                let mut path = base.clone();
+                let mut rest = &text[i + root.len()..];
+                while let Some(seg) = Some(ident(rest)).filter(|s| !s.is_empty()) {
+                    path.push(seg.clone());
+                    rest = &rest[seg.len()..];
+                    match rest.strip_prefix("::") {
+                        Some(r) => rest = r,
+                        None => break,
+                    }
+                }
+                // `a::{b, c::d}`: each item of one level of braces.
+                let mut paths = vec![path.clone()];
+                if let Some(inner) = rest.strip_prefix('{').and_then(|r| r.split('}').next()) {
+                    paths.extend(inner.split(',').map(|item| path.iter().cloned().chain(item.trim().split("::").map(|s| ident(s.trim()))).filter(|s| !s.is_empty()).collect()));
+                }
+                named.extend(paths.iter().filter_map(|p| resolve(p)));
+            }
+        }
+        let descendant = |m: &str| m.starts_with(&format!("{module}::"));
+        edges.insert(module.clone(), named.into_iter().filter(|m| m != module && !descendant(m)).collect());
+    }
+    edges
+}
+
+#[test]
+fn no_two_files_import_each_other() {
+    let circles = circles(&file_imports());
+    assert!(circles.is_empty(), "import circles between files:\n{}", circles.iter().map(|c| c.join(" -> ")).collect::<Vec<_>>().join("\n"));
+}
+
+#[test]
+fn file_imports_resolve_to_files() {
+    let edges = file_imports();
+    // A plain import, a braced one and a `super::` one.
+    assert!(edges["passes::recover"].contains("torch::train"), "{:?}", edges["passes::recover"]);
+    assert!(edges["passes::recover"].contains("passes::prune"), "{:?}", edges["passes::recover"]);
+    assert!(edges["torch::train"].contains("torch::schedule"), "{:?}", edges["torch::train"]);
+    assert!(!edges["passes"].iter().any(|m| m.starts_with("passes::")), "a module's own children are not its imports");
 }
 
 #[test]

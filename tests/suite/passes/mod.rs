@@ -135,3 +135,13 @@ fn every_pass_has_its_test_file() {
     assert!(missing.is_empty(), "passes without a test file:\n{}", missing.join("\n"));
     assert_eq!(pdi_compile::passes::FILES.len(), pdi_compile::passes::KNOWN.len());
 }
+
+/// A pass answers to the name its registry line gives it (the runner names its warnings and
+/// reports by `Pass::name`, recipes by the registry).
+#[test]
+fn every_pass_is_named_as_registered() {
+    for name in pdi_compile::passes::KNOWN {
+        let built = pdi_compile::passes::build(name, &yaml_serde::Value::Null).unwrap();
+        assert_eq!(built.pass.name(), *name);
+    }
+}

@@ -33,7 +33,7 @@ fn the_interpreter_matches_onnx_runtime_op_by_op() {
         let out = dir.path().join(model.replace('/', "_"));
         compile(model, recipe, &out);
         let m = load(&out.join("model.onnx"));
-        let check = pdi_compile::prune::recover::check_ops(&m, &frames([1, 1, 192, 256], 2)).unwrap();
+        let check = pdi_compile::torch::train::check_ops(&m, &frames([1, 1, 192, 256], 2)).unwrap();
         println!("{model}: {check:?}");
         let ops = check.ops;
         // Every model here has an image stem and the PSF's 15x15 depthwise kernel.
@@ -58,7 +58,7 @@ fn features_reach_back_to_where_yolov8_branches_start() {
     for (model, total) in [("models/trained/pdinet_v8_w0.25_trained.onnx", 9), ("models/trained/pdinet_v5_w0.25_trained.onnx", 3)] {
         let out = dir.path().join(model.replace('/', "_"));
         compile(model, "passes/detect-f32.yaml", &out);
-        let features: Vec<String> = pdi_compile::prune::recover::feature_specs(&load(&out.join("model.onnx")), &Default::default()).unwrap().iter().map(|f| f["value"].as_str().unwrap().to_string()).collect();
+        let features: Vec<String> = pdi_compile::torch::heads::feature_specs(&load(&out.join("model.onnx")), &Default::default()).unwrap().iter().map(|f| f["value"].as_str().unwrap().to_string()).collect();
         let necks = features.iter().filter(|v| v.starts_with("/neck/")).count();
         assert_eq!((features.len(), necks), (total, 3), "{model}: {features:?}");
     }

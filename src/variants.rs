@@ -1,0 +1,154 @@
+//! What `bench` and `ship` share: compiling a model's variants side by side (a variant that
+//! fails its hard limit is set aside with those made from it), the shipped recipes they
+//! compile and the one-pass recipes cut from them, a recovery budget laid over a recipe, and
+//! timing every variant in one interleaved loop so that their ratios come from the same run.
+
+use crate::compile::CompileReport;
+use crate::pipeline::Recipe;
+use crate::runtime::{self, Engine, Runtime};
+use crate::tensor::Tensor;
+use anyhow::{anyhow, Result};
+use std::path::{Path, PathBuf};
+
+/// A shipped recipe's text (`passes/NAME.yaml`, built in).
+pub fn recipe(name: &str) -> &'static str {
+    crate::pipeline::recipe::shipped(name).unwrap_or_else(|| panic!("{name} is a shipped recipe"))
+}
+
+/// The variants whose compile ended past a lossy pass's hard limit (no artifact), and why; a
+/// variant made from a failed one fails with it. `bench` and `ship` go on with the rest.
+#[derive(Default)]
+pub struct Failed(Vec<(String, String)>);
+
+impl Failed {
+    pub fn contains(&self, name: &str) -> bool {
+        self.0.iter().any(|(n, _)| n == name)
+    }
+
+    /// True (and recorded) when `name`'s source variant failed.
+    pub fn source_failed(&mut self, name: &str, from: Option<&str>) -> bool {
+        let Some(f) = from.filter(|f| self.contains(f)) else { return false };
+        self.0.push((name.to_string(), format!("its source variant {f} failed")));
+        true
+    }
+
+    /// The compile's report, or None when it failed its hard limit (recorded, and said on
+    /// stderr under `command`); other errors pass through.
+    pub fn take(&mut self, command: &str, name: &str, compiled: Result<CompileReport>) -> Result<Option<CompileReport>> {
+        match compiled {
+            Ok(r) => Ok(Some(r)),
+            Err(e) if crate::pipeline::is_quality_failure(&e) => {
+                eprintln!("{command}: {name} failed: {e:#}");
+                self.0.push((name.to_string(), format!("{e:#}")));
+                Ok(None)
+            }
+            Err(e) => Err(e),
+        }
+    }
+
+    /// `name: why`, one a variant, for the reports.
+    pub fn lines(self) -> Vec<String> {
+        self.0.into_iter().map(|(n, why)| format!("{n}: {why}")).collect()
+    }
+}
+
+/// A recipe of `text`'s last pass alone, named `name`: applied to an earlier variant, it
+/// makes e.g. INT8 from the f32 compile without running the lossless passes again.
+pub fn last_pass_of(text: &str, name: &str) -> Result<String> {
+    let r = Recipe::parse(text)?;
+    let last = r.passes.last().cloned().ok_or_else(|| anyhow!("built-in recipe {} has no passes", r.name))?;
+    Recipe { name: name.into(), description: format!("the last pass of {}", r.name), bases: Vec::new(), passes: vec![last] }.to_yaml()
+}
+
+/// `text` with its recovery's total step budget set to `steps` (unchanged when None), shared
+/// among its `recover` passes in the recipe's own proportions (a recipe that prunes in stages
+/// recovers after each). A pass that names its frames and is given fewer steps than its own
+/// trains on proportionally fewer, never fewer than the pass's default (nor more than it asked
+/// for): a recipe's frame count is sized for its own steps, a recovery of a tenth of them sees
+/// a tenth of the frames, and drawing the rest cost 26 s of a 2-minute demo on 2 cores.
+pub fn with_recover_steps(text: &str, steps: Option<usize>) -> Result<String> {
+    let Some(steps) = steps else { return Ok(text.to_string()) };
+    if steps == 0 {
+        anyhow::bail!("--recover-steps must be at least 1");
+    }
+    let mut r = Recipe::parse(text)?;
+    let defaults = crate::passes::recover::Options::default();
+    let own = |p: &crate::pipeline::recipe::PassSpec| p.options.get("steps").and_then(|m| m.as_u64()).unwrap_or(defaults.schedule.steps as u64) as f64;
+    let total: f64 = r.passes.iter().filter(|p| p.name == "recover").map(own).sum::<f64>().max(1.0);
+    for p in r.passes.iter_mut().filter(|p| p.name == "recover") {
+        let share = (steps as f64 * own(p) / total).round().max(1.0);
+        let asked = p.options.get("frames").and_then(|f| f.as_u64());
+        let mut m = match &p.options {
+            yaml_serde::Value::Mapping(m) => m.clone(),
+            _ => yaml_serde::Mapping::new(),
+        };
+        m.insert("steps".into(), (share as u64).into());
+        if let Some(asked) = asked {
+            let fewer = (asked as f64 * share / own(p)).max(defaults.frames as f64).min(asked as f64).round() as u64;
+            m.insert("frames".into(), fewer.into());
+        }
+        p.options = yaml_serde::Value::Mapping(m);
+    }
+    r.to_yaml()
+}
+
+/// What [`time_together`] times: the original on ORT, then each (label, engine, model).
+pub struct Timing<'a> {
+    pub original: &'a Path,
+    pub timed: &'a [(String, Engine, PathBuf)],
+    /// The frame: the first of this folder, or a simulated one.
+    pub data: Option<&'a Path>,
+    pub psf: Option<&'a Path>,
+    pub runs: usize,
+    pub threads: usize,
+}
+
+/// Median milliseconds of the original on ORT, then of each timed model, all interleaved in
+/// one loop on the same frame, every session on the same threads.
+pub fn time_together(t: &Timing) -> Result<Vec<f64>> {
+    let reference = crate::verify::side(t.original, "original")?;
+    let (h, w) = reference.shape;
+    let frame = match t.data {
+        Some(d) => crate::frames::load_folder(d, h, w)?.swap_remove(0),
+        None => crate::frames::synthetic(1, h, w, 0).swap_remove(0),
+    };
+    let psf = t.psf.map(crate::verify::blur_input).transpose()?;
+    let mut loaded: Vec<(String, Box<dyn Runtime>, Vec<(String, Tensor)>)> = Vec::new();
+    let inputs = crate::verify::feeds(&reference, &frame, psf.as_ref())?;
+    loaded.push(("original/ort".into(), runtime::load(Engine::Ort, &reference.model, &inputs, t.threads)?, inputs));
+    for (name, engine, path) in t.timed {
+        let side = crate::verify::side(path, name)?;
+        let inputs = crate::verify::feeds(&side, &frame, psf.as_ref())?;
+        loaded.push((format!("{name}/{engine:?}"), runtime::load(*engine, &side.model, &inputs, t.threads)?, inputs));
+    }
+    let mut models: Vec<(String, &mut dyn Runtime, Vec<(String, Tensor)>)> = Vec::new();
+    for (n, rt, i) in loaded.iter_mut() {
+        models.push((n.clone(), rt.as_mut(), std::mem::take(i)));
+    }
+    let latency = crate::runtime::latency::interleaved(&mut models, t.runs)?;
+    Ok(latency.into_iter().map(|l| l.median_ms).collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn recover_steps_are_shared_in_the_recipes_proportions() {
+        let text = "name: t\npasses:\n  - prune: {ratio: 0.5}\n  - recover: {steps: 600, lr: 0.002, frames: 2048}\n  - prune: {ratio: 0.5}\n  - recover\n";
+        let r = Recipe::parse(&with_recover_steps(text, Some(160)).unwrap()).unwrap();
+        let steps: Vec<u64> = r.passes.iter().filter(|p| p.name == "recover").map(|p| p.options.get("steps").unwrap().as_u64().unwrap()).collect();
+        // 600 and the default 1000 steps: 160 shared 600:1000.
+        assert_eq!(steps, [60, 100]);
+        assert_eq!(r.passes[1].options.get("lr").unwrap().as_f64(), Some(0.002));
+        // A tenth of its steps: a tenth of 2048 frames, held at 512; the default stays unset.
+        assert_eq!(r.passes[1].options.get("frames").unwrap().as_u64(), Some(512));
+        assert!(r.passes[3].options.get("frames").is_none());
+        let longer = Recipe::parse(&with_recover_steps(text, Some(16000)).unwrap()).unwrap();
+        assert_eq!(longer.passes[1].options.get("frames").unwrap().as_u64(), Some(2048));
+        let half = Recipe::parse(&with_recover_steps("name: t\npasses:\n  - recover: {steps: 8000, frames: 2048}\n", Some(4000)).unwrap()).unwrap();
+        assert_eq!(half.passes[0].options.get("frames").unwrap().as_u64(), Some(1024));
+        assert_eq!(with_recover_steps(text, None).unwrap(), text);
+        assert!(with_recover_steps(text, Some(0)).is_err());
+    }
+}
