@@ -348,9 +348,10 @@ def measure(names, tier):
     (ROOT / RECORDS).mkdir(parents=True, exist_ok=True)
     failed = []
     # Whether what is measured is the commit: the product's files, not the records, as they
-    # were when scripts/results built the binary (just before this).
-    commit = git("rev-parse", "HEAD")
-    changed = git("status", "--porcelain", "--", "src", "passes", "models", "calib", "Cargo.toml", "Cargo.lock")
+    # were when scripts/results built the binary (it judges them before the build).
+    commit = os.environ.get("PDI_RESULTS_COMMIT") or git("rev-parse", "HEAD")
+    changed = os.environ.get("PDI_RESULTS_CHANGED", "") if "PDI_RESULTS_COMMIT" in os.environ else \
+        git("status", "--porcelain", "--", "src", "passes", "models", "calib", "Cargo.toml", "Cargo.lock")
     for name, tier_, page, fn, env in chosen:
         started = datetime.datetime.now(datetime.timezone.utc)
         ctx = Ctx(name, env)

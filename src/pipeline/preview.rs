@@ -31,14 +31,12 @@ pub struct Preview {
     pub context: Option<context::ContextDependence>,
 }
 
-const LOSSLESS: &[&str] = &["promote-constants", "strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce"];
-
 pub fn preview(model: &ModelProto, scene: &Scene, psf: Option<PathBuf>, calib: Option<PathBuf>) -> Result<Preview> {
     // The crop's halos are fitted on two frames: their values do not change the counts.
     let options = |n: &str| if n == "crop-roi" { yaml_serde::from_str("{frames: 2}").expect("valid YAML") } else { yaml_serde::Value::Null };
     let recipe = |names: &[&str]| Recipe { name: "scene-preview".into(), description: String::new(), bases: Vec::new(), passes: names.iter().map(|n| PassSpec::new(n, options(n))).collect() };
     let mut base = model.clone();
-    pipeline::run(&recipe(LOSSLESS), &mut base, &mut PassContext { psf: psf.clone(), calib: calib.clone(), ..Default::default() })?;
+    pipeline::run(&Recipe::lossless(), &mut base, &mut PassContext { psf: psf.clone(), calib: calib.clone(), ..Default::default() })?;
     let full = counts(&base)?;
     let mut rows = vec![row("lossless compile", &base, full)?];
     let steps: Vec<(&str, Scene)> = [

@@ -181,12 +181,12 @@ impl Recipe {
     }
 }
 
-/// Passes that change nothing a scene specialization depends on: the scene passes go after
-/// the longest run of these that opens a recipe (constants and gates folded), before
-/// pruning, quantization and target legalization, which then work on the smaller model.
-const BEFORE_SCENE: &[&str] = &["promote-constants", "strip-recon", "bind-psf", "fold-constants", "fold-psf-gates", "fold-bn", "resize-to-deconv", "dce"];
-
 impl Recipe {
+    /// The shipped `detect-lossless`: the lossless passes the detect recipes start from.
+    pub fn lossless() -> Recipe {
+        Recipe::parse(shipped("detect-lossless").expect("detect-lossless is shipped")).expect("the shipped detect-lossless parses")
+    }
+
     /// The recipe with the passes `scene` asks for (drop-classes, drop-strides, crop-roi, in
     /// that order) inserted where they belong (the crop without halos when the recipe prunes).
     /// No recovery is added after a crop: with its halos the crop agrees better without it
@@ -202,7 +202,12 @@ impl Recipe {
         if self.passes.iter().any(|p| ["drop-classes", "drop-strides", "crop-roi"].contains(&p.name.as_str())) {
             return Ok(self.clone());
         }
-        let at = self.passes.iter().position(|p| !BEFORE_SCENE.contains(&p.name.as_str())).unwrap_or(self.passes.len());
+        // The lossless passes change nothing a scene specialization depends on: the scene
+        // passes go after the longest run of them that opens a recipe (constants and gates
+        // folded), before pruning, quantization and target legalization, which then work on
+        // the smaller model.
+        let lossless: Vec<String> = Recipe::lossless().passes.into_iter().map(|p| p.name).collect();
+        let at = self.passes.iter().position(|p| !lossless.contains(&p.name)).unwrap_or(self.passes.len());
         if !self.passes[..at].iter().any(|p| p.name == "fold-constants") && !wanted.is_empty() {
             bail!("scene specialization needs constant decode shapes: the pipeline must run fold-constants before {}", self.passes.get(at).map_or("its end", |p| p.name.as_str()));
         }

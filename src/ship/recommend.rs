@@ -30,7 +30,7 @@ pub fn recommend(variants: &[Variant], min_kept: f64, rknn: &Path, rknn_failed: 
     let Some(original) = variants.first() else { return out };
     for (target, engine) in [("onnxruntime", "ORT"), ("tract", "tract")] {
         let ms = |v: &Variant| if engine == "ORT" { v.ort_ms } else { v.tract_ms };
-        let candidates: Vec<(&Variant, f64, f64, &str)> = variants.iter().skip(1).filter_map(|v| Some((v, ms(v)?, kept(v, original)?.0, kept(v, original)?.1))).collect();
+        let candidates: Vec<(&Variant, f64, f64, &str)> = variants.iter().skip(1).filter_map(|v| { let (k, what) = kept(v, original)?; Some((v, ms(v)?, k, what)) }).collect();
         let good = candidates.iter().filter(|c| c.2 >= min_kept).min_by(|a, b| a.1.total_cmp(&b.1));
         let fastest = candidates.iter().min_by(|a, b| a.1.total_cmp(&b.1));
         let r = match (good, fastest) {
