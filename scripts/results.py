@@ -283,6 +283,46 @@ def pruned(model):
     return experiment
 
 
+# Each claim broken on purpose, and the test that must then fail: (name, file, the text, what
+# it becomes, the test). The tree is restored after each, whatever happens.
+BROKEN = [
+    ("run decodes boxes a pixel off", "src/detect/decode.rs",
+     "bbox: [cx - w / 2.0, cy - h / 2.0,", "bbox: [cx - w / 2.0 + 1.0, cy - h / 2.0,",
+     "run::run_detects_what_an_independent_decoder_finds_and_scores_the_same_map"),
+    ("recover keeps a training that made things worse", "src/passes/recover.rs",
+     "let kept = worst_rel_l2(&after) < worst_rel_l2(&before);", "let kept = worst_rel_l2(&after) > worst_rel_l2(&before);",
+     "passes::recover::the_full_size_model_recovers_end_to_end_on_the_cpu"),
+    ("a zero PSF gate's branch is kept", "src/passes/fold_psf_gates.rs",
+     "let action = if hi == 0.0 && lo == 0.0 {", "let action = if false && hi == 0.0 && lo == 0.0 {",
+     "passes::fold_psf_gates::uniform_and_zero_gates_fold_away"),
+    ("an error message the guide quotes changes", "src/scene/geometry.rs",
+     "must be multiples of {coarsest}", "must be aligned to {coarsest}",
+     "guide::the_messages_the_guide_quotes_are_what_the_tool_prints"),
+    ("training draws a new seed each run", "src/torch/trainer.py",
+     'torch.manual_seed(cfg["seed"])', 'torch.manual_seed(cfg["seed"] + time.time_ns() % 1000)',
+     "passes::recover::a_pruned_compile_is_byte_identical_when_repeated_under_load"),
+]
+
+
+def broken_builds(ctx):
+    """Each test above run on a build with its claim broken: it must fail (and, on the
+    unbroken tree, the suite passes it)."""
+    rows = []
+    for name, path, old, new, test in BROKEN:
+        file = ROOT / path
+        text = file.read_text()
+        if text.count(old) != 1:
+            raise Failed(f"{path} no longer holds `{old}` once: update BROKEN")
+        try:
+            file.write_text(text.replace(old, new))
+            code, out = ctx.run(["cargo", "test", "--locked", "--test", "suite", "--", "--exact", test], ok=(0, 101))
+        finally:
+            file.write_text(text)
+        ran = "running 1 test" in out
+        rows.append({"broken": name, "file": path, "test": test, "failed": code != 0 and ran, "ran": ran})
+    return {"cases": rows}
+
+
 def gpu_name():
     if not shutil.which("nvidia-smi"):
         return None
@@ -303,6 +343,7 @@ def experiments(gpu):
         ("scene", "quick", "scene.md", scene, None),
         ("rebuild", "quick", "reproducible-builds.md", rebuild, cpu),
         ("recipe-bytes", "quick", "reproducible-builds.md", recipe_bytes, cpu),
+        ("broken-builds", "full", "tests.md", broken_builds, cpu),
         ("pruned-v5-w0.25", "full", "pruning.md", pruned("v5 w0.25"), cpu),
         ("pruned-v8-w0.25", "full", "pruning.md", pruned("v8 w0.25"), cpu),
     ]

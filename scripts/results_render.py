@@ -117,6 +117,14 @@ def recipe_bytes(f):
                         "replaced."]
 
 
+def broken_builds(f):
+    return table(["claim broken on purpose", "file", "test", "the test failed"],
+                 [[c["broken"], f"`{c['file']}`", f"`{c['test']}`", "yes" if c["failed"] else "NO"] for c in f["cases"]]) + \
+        ["", "Each row: the file edited to break the claim, the test run alone on that build "
+             "(`cargo test --test suite -- --exact TEST`), the tree restored; on the unbroken tree the suite "
+             "passes every one of them."]
+
+
 def pruned(f):
     rc = f["recover"]
     capped = ", stopped by its time cap" if rc["capped"] else ""
@@ -133,7 +141,8 @@ def pruned(f):
 
 
 BLOCKS = {"lossless": lossless, "int8": int8, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
-          "rebuild": rebuild, "recipe-bytes": recipe_bytes}
+          "rebuild": rebuild, "recipe-bytes": recipe_bytes,
+          "broken-builds": broken_builds}
 
 
 def block(r):

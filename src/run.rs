@@ -138,23 +138,12 @@ impl Collected {
     }
 }
 
-fn percentile(sorted: &[f64], q: f64) -> f64 {
-    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
-}
-
 fn latency(load_ms: f64, times: &[Vec<f64>; 3]) -> Latency {
-    let sorted: Vec<Vec<f64>> = times
-        .iter()
-        .map(|t| {
-            let mut s = t.clone();
-            s.sort_by(f64::total_cmp);
-            s
-        })
-        .collect();
-    let total: f64 = sorted.iter().map(|s| percentile(s, 0.5)).sum();
+    let sorted: Vec<Vec<f64>> = times.iter().map(|t| crate::metrics::order::sorted(t.clone())).collect();
+    let total: f64 = sorted.iter().map(|s| crate::metrics::order::quantile(s, 0.5)).sum();
     let stage = |s: &[f64]| {
-        let median_ms = percentile(s, 0.5);
-        StageTimes { median_ms, p95_ms: percentile(s, 0.95), p99_ms: percentile(s, 0.99), share: if total > 0.0 { median_ms / total } else { 0.0 } }
+        let median_ms = crate::metrics::order::quantile(s, 0.5);
+        StageTimes { median_ms, p95_ms: crate::metrics::order::quantile(s, 0.95), p99_ms: crate::metrics::order::quantile(s, 0.99), share: if total > 0.0 { median_ms / total } else { 0.0 } }
     };
     let summed: f64 = times.iter().flatten().sum();
     Latency { load_ms, preprocess: stage(&sorted[0]), inference: stage(&sorted[1]), decode_nms: stage(&sorted[2]), frames_per_second: if summed > 0.0 { times[0].len() as f64 / (summed / 1e3) } else { 0.0 } }

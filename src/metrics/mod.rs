@@ -2,5 +2,6 @@
 //! and agreement rules.
 
 pub mod coco_map;
+pub mod order;
 pub mod validation;
 pub mod tensor_error;

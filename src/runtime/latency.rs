@@ -48,9 +48,9 @@ pub fn interleaved(models: &mut [(String, &mut dyn Runtime, Vec<(String, Tensor)
     Ok(models
         .iter()
         .zip(times)
-        .map(|((name, _, _), mut t)| {
-            t.sort_by(f64::total_cmp);
-            Latency { name: name.clone(), median_ms: t[t.len() / 2], min_ms: t[0], runs }
+        .map(|((name, _, _), t)| {
+            let t = crate::metrics::order::sorted(t);
+            Latency { name: name.clone(), median_ms: crate::metrics::order::quantile(&t, 0.5), min_ms: t[0], runs }
         })
         .collect())
 }

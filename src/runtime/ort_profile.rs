@@ -76,18 +76,10 @@ fn parse(text: &str, skip: usize) -> Result<Profile> {
         }
     }
     let kernels = order.into_iter().map(|k| {
-        let ms = median(per[&k].iter().skip(skip).copied().collect());
+        let ms = crate::metrics::order::median(per[&k].iter().skip(skip).copied().collect());
         KernelTime { name: k.0, op: k.1, ms }
     });
-    Ok(Profile { kernels: kernels.collect(), run_ms: median(runs.into_iter().skip(skip).collect()) })
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+    Ok(Profile { kernels: kernels.collect(), run_ms: crate::metrics::order::median(runs.into_iter().skip(skip).collect()) })
 }
 
 #[cfg(test)]
