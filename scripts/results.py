@@ -298,8 +298,8 @@ BROKEN = [
     ("an error message the guide quotes changes", "src/scene/geometry.rs",
      "must be multiples of {coarsest}", "must be aligned to {coarsest}",
      "guide::the_messages_the_guide_quotes_are_what_the_tool_prints"),
-    ("training draws a new seed each run", "src/torch/trainer.py",
-     'torch.manual_seed(cfg["seed"])', 'torch.manual_seed(cfg["seed"] + time.time_ns() % 1000)',
+    ("training draws its frame order from a new seed each run", "src/torch/trainer.py",
+     'return dev, torch.Generator().manual_seed(cfg["seed"])', 'return dev, torch.Generator().manual_seed(cfg["seed"] + time.time_ns() % 1000)',
      "passes::recover::a_pruned_compile_is_byte_identical_when_repeated_under_load"),
 ]
 
