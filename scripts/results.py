@@ -323,6 +323,23 @@ def broken_builds(ctx):
     return {"cases": rows}
 
 
+def suite(ctx):
+    """The whole suite as CI runs it (`scripts/test`), on a fresh clone of this commit: its
+    own build from nothing, the cache's Python environments as they are."""
+    import re
+    clone = ctx.dir / "clone"
+    ctx.run(["git", "clone", "--quiet", ".", clone])
+    ctx.run(["git", "-C", clone, "checkout", "--quiet", git("rev-parse", "HEAD")])
+    code, out = ctx.run(["bash", "-c", f"cd {clone} && scripts/test"], ok=(0, 101))
+    results = [tuple(int(x) for x in m) for m in re.findall(r"test result: \w+\. (\d+) passed; (\d+) failed; (\d+) ignored", out)]
+    binaries = re.findall(r"test result: \w+\.[^\n]*finished in ([\d.]+)s", out)
+    suite_seconds = max((float(x) for x in binaries), default=0.0)
+    shutil.rmtree(clone / "target", ignore_errors=True)
+    return {"exit": code, "seconds": ctx.commands[-1]["seconds"], "passed": sum(r[0] for r in results),
+            "failed": sum(r[1] for r in results), "ignored": sum(r[2] for r in results),
+            "slowest_binary_seconds": suite_seconds}
+
+
 def gpu_name():
     if not shutil.which("nvidia-smi"):
         return None
@@ -343,6 +360,7 @@ def experiments(gpu):
         ("scene", "quick", "scene.md", scene, None),
         ("rebuild", "quick", "reproducible-builds.md", rebuild, cpu),
         ("recipe-bytes", "quick", "reproducible-builds.md", recipe_bytes, cpu),
+        ("suite", "full", "tests.md", suite, None),
         ("broken-builds", "full", "tests.md", broken_builds, cpu),
         ("pruned-v5-w0.25", "full", "pruning.md", pruned("v5 w0.25"), cpu),
         ("pruned-v8-w0.25", "full", "pruning.md", pruned("v8 w0.25"), cpu),

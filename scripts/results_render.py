@@ -117,6 +117,15 @@ def recipe_bytes(f):
                         "replaced."]
 
 
+def suite(f):
+    return table(["`scripts/test` on a fresh clone", "exit", "tests passed", "failed", "the integration suite"],
+                 [[dur(f["seconds"]) + " (its build from nothing included)", str(f["exit"]), str(f["passed"]),
+                   str(f["failed"]), dur(f["slowest_binary_seconds"])]]) + \
+        ["", "The clone's own build; the cache's Python environments (ONNX Runtime, the toolkit's venv) "
+             "already installed, Cargo's registry downloaded. A fresh CI machine also downloads the toolkit's "
+             "venv, beside the build."]
+
+
 def broken_builds(f):
     return table(["claim broken on purpose", "file", "test", "the test failed"],
                  [[c["broken"], f"`{c['file']}`", f"`{c['test']}`", "yes" if c["failed"] else "NO"] for c in f["cases"]]) + \
@@ -142,7 +151,7 @@ def pruned(f):
 
 BLOCKS = {"lossless": lossless, "int8": int8, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
           "rebuild": rebuild, "recipe-bytes": recipe_bytes,
-          "broken-builds": broken_builds}
+          "broken-builds": broken_builds, "suite": suite}
 
 
 def block(r):

@@ -107,7 +107,7 @@ pub struct Timing<'a> {
 /// one loop on the same frame, every session on the same threads.
 pub fn time_together(t: &Timing) -> Result<Vec<f64>> {
     let reference = crate::verify::side(t.original, "original")?;
-    let (h, w) = reference.shape;
+    let (h, w) = reference.input.shape;
     let frame = match t.data {
         Some(d) => crate::frames::load_folder(d, h, w)?.swap_remove(0),
         None => crate::frames::synthetic(1, h, w, 0).swap_remove(0),

@@ -152,17 +152,17 @@ pub fn stress(req: &StressRequest) -> Result<StressReport> {
         _ => bail!("the reference {} has no decodable detection output (YOLOv5 or YOLOv8 head); stress compares detections", req.reference.display()),
     };
     let classes = head.classes.unwrap_or(1).max(1);
-    let (h, w) = reference.shape;
+    let (h, w) = reference.input.shape;
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
 
     let mut cands = Vec::new();
     for path in &req.candidates {
         let s = side(path, "candidate")?;
-        if crate::scene::compare::SceneView::new(&s.model, head.kind, classes, reference.shape)?.is_some() {
+        if crate::scene::compare::SceneView::new(&s.model, head.kind, classes, reference.input.shape)?.is_some() {
             bail!("{} is scene-specialized; stress compares full-frame candidates (check it with verify)", path.display());
         }
-        if s.shape != reference.shape {
-            bail!("{} takes {:?} frames, the reference {:?}", path.display(), s.shape, reference.shape);
+        if s.input.shape != reference.input.shape {
+            bail!("{} takes {:?} frames, the reference {:?}", path.display(), s.input.shape, reference.input.shape);
         }
         if !s.model.graph.as_ref().is_some_and(|g| g.output.iter().any(|o| o.name == det)) {
             bail!("{} has no output '{det}' (the reference's detection output)", path.display());
@@ -187,7 +187,7 @@ pub fn stress(req: &StressRequest) -> Result<StressReport> {
         }
     };
     let base_map = req.psf.as_deref().map(BlurMap::load).transpose()?;
-    let takes_blur = !reference.other_inputs.is_empty() || cands.iter().any(|c| !c.side.other_inputs.is_empty());
+    let takes_blur = !reference.input.other_inputs.is_empty() || cands.iter().any(|c| !c.side.input.other_inputs.is_empty());
     let mut ref_rt = OrtRuntime::with_options(&reference.model, GraphOptimizationLevel::Level3, threads)?;
 
     let pb = ProgressBar::new((set.conditions.len() * base.len()) as u64);

@@ -97,26 +97,23 @@ pub struct VerifyReport {
     pub passed: bool,
 }
 
+/// A model to compare and what it takes.
 pub(crate) struct Side {
     pub(crate) model: ModelProto,
-    pub(crate) image_input: String,
-    pub(crate) other_inputs: Vec<String>,
-    pub(crate) shape: (usize, usize),
-    /// Channels of the image input: single-channel frames are replicated into them.
-    pub(crate) channels: usize,
+    pub(crate) input: ModelInput,
 }
 
 pub(crate) fn side(path: &std::path::Path, what: &str) -> Result<Side> {
     let model = crate::onnx::load(path)?.model;
-    let i = ModelInput::of(&model, &format!("{what} {}", path.display()))?;
-    Ok(Side { shape: i.shape, channels: i.channels, image_input: i.image_input, other_inputs: i.other_inputs, model })
+    let input = ModelInput::of(&model, &format!("{what} {}", path.display()))?;
+    Ok(Side { model, input })
 }
 
 pub(crate) use crate::deploy::input::blur_input;
 
 pub(crate) fn feeds(side: &Side, frame: &Frame, psf: Option<&Tensor>) -> Result<Vec<(String, Tensor)>> {
-    let mut v = vec![(side.image_input.clone(), crate::calib_frames::replicate(&frame.image, side.channels))];
-    for n in &side.other_inputs {
+    let mut v = vec![(side.input.image_input.clone(), crate::calib_frames::replicate(&frame.image, side.input.channels))];
+    for n in &side.input.other_inputs {
         let p = psf.ok_or_else(|| anyhow!("input '{n}' needs a value: give the camera's blur map with --psf"))?;
         v.push((n.clone(), p.clone()));
     }
@@ -139,11 +136,11 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
         bail!("the candidate shares no output name with the reference; nothing to compare (a split head from rknn-legalize is checked by rknn-convert, or verify the model compiled without rknn-legalize)");
     }
     let head = crate::inspect::inspect(&reference.model)?.head;
-    let scene = SceneView::new(&candidate.model, head.kind, head.classes.unwrap_or(0), reference.shape)?;
-    if scene.is_none() && reference.shape != candidate.shape {
-        bail!("reference takes {:?} frames, candidate {:?}", reference.shape, candidate.shape);
+    let scene = SceneView::new(&candidate.model, head.kind, head.classes.unwrap_or(0), reference.input.shape)?;
+    if scene.is_none() && reference.input.shape != candidate.input.shape {
+        bail!("reference takes {:?} frames, candidate {:?}", reference.input.shape, candidate.input.shape);
     }
-    let (h, w) = reference.shape;
+    let (h, w) = reference.input.shape;
     let (frames, frame_source) = match &req.data {
         Some(d) => (frames::load_folder(d, h, w)?, d.display().to_string()),
         None => (frames::synthetic(req.random.max(1), h, w, req.seed), format!("{} synthetic frames, seed {}", req.random.max(1), req.seed)),
