@@ -229,6 +229,14 @@ def readme_rows(recs):
         fs = recs["rebuild"]["figures"]["folders"]
         row("reproducible builds (`rebuild` of the demo's folders)",
             f"{sum(r['identical'] for r in fs)} of {len(fs)} rebuilt to the same bytes", "rebuild", "reproducible-builds.md")
+    if "suite" in recs:
+        f = recs["suite"]["figures"]
+        row("the test suite (`scripts/test` on a fresh clone, its build included)",
+            f"{dur(f['seconds'])}, {f['passed']} tests passed, {f['failed']} failed", "suite", "tests.md")
+    if "broken-builds" in recs:
+        cs = recs["broken-builds"]["figures"]["cases"]
+        row("tests against broken builds of their claims",
+            f"{sum(c['failed'] for c in cs)} of {len(cs)} fail as they must", "broken-builds", "tests.md")
     return rows
 
 
