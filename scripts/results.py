@@ -16,6 +16,7 @@ import datetime
 import hashlib
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -201,7 +202,6 @@ def rebuild(ctx):
 def shortened(ctx):
     """The shipped recipes with every training cut to a few steps (their bases beside them):
     the same passes and code paths, in minutes."""
-    import re
     folder = ctx.dir / "recipes"
     folder.mkdir()
     for src in sorted((ROOT / "passes").glob("*.yaml")):
@@ -326,7 +326,6 @@ def broken_builds(ctx):
 def suite(ctx):
     """The whole suite as CI runs it (`scripts/test`), on a fresh clone of this commit: its
     own build from nothing, the cache's Python environments as they are."""
-    import re
     clone = ctx.dir / "clone"
     ctx.run(["git", "clone", "--quiet", ".", clone])
     ctx.run(["git", "-C", clone, "checkout", "--quiet", git("rev-parse", "HEAD")])

@@ -66,9 +66,6 @@ pub struct CompileReport {
     /// Why a rebuild could give other bytes (a training the time cap stopped); empty: the
     /// same input, recipe, thread counts and machine give the same model.
     pub not_reproducible: Vec<String>,
-    /// The passes' trainings, for the manifest (the report has each in its pass's details).
-    #[serde(skip)]
-    pub trainings: Vec<crate::torch::train::Account>,
     pub millis: f64,
     pub output: String,
     pub target: crate::targets::Target,
@@ -138,7 +135,8 @@ pub fn compile_recipe(req: &CompileRequest, recipe: Recipe) -> Result<CompileRep
     } else {
         onnx::save(&model, &staged_model)?;
     }
-    let unrepeatable: Vec<String> = cx.trainings.iter().filter_map(|a| a.not_reproducible.as_ref().map(|w| format!("{}: {w}", a.pass))).collect();
+    let trainings = std::mem::take(&mut cx.trainings);
+    let unrepeatable: Vec<String> = trainings.iter().filter_map(|a| a.not_reproducible.as_ref().map(|w| format!("{}: {w}", a.pass))).collect();
     let report = CompileReport {
         tool_version: env!("CARGO_PKG_VERSION"),
         input: req.recorded(&req.model),
@@ -150,21 +148,20 @@ pub fn compile_recipe(req: &CompileRequest, recipe: Recipe) -> Result<CompileRep
         passes,
         warnings: crate::warn::take().into_iter().chain(cx.warnings).collect(),
         not_reproducible: unrepeatable,
-        trainings: cx.trainings,
         millis: t.elapsed().as_secs_f64() * 1e3,
         output: req.recorded(&out_model),
         target: req.target,
         target_check,
     };
     write_atomic(&dir.join("report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
-    write_atomic(&dir.join("manifest.yaml"), manifest(req, &report, &staged_model)?.as_bytes())?;
+    write_atomic(&dir.join("manifest.yaml"), manifest(req, &report, &staged_model, trainings)?.as_bytes())?;
     staged.commit()?;
     Ok(report)
 }
 
-fn manifest(req: &CompileRequest, r: &CompileReport, model: &Path) -> Result<String> {
+/// The folder's manifest; `training` is each training the passes ran.
+fn manifest(req: &CompileRequest, r: &CompileReport, model: &Path, training: Vec<crate::torch::train::Account>) -> Result<String> {
     use crate::manifest::{Hashed, Host, Inputs, Manifest, Versions};
-    let training = r.trainings.clone();
     let cx = &req.context;
     let m = Manifest {
         tool: "pdi-compile".into(),

@@ -111,11 +111,14 @@ pub fn run_python(python: &Path, dir: &Path, script: &str, args: &[&std::ffi::Os
     let mut done = None;
     for line in BufReader::new(child.stdout.take().expect("piped")).lines() {
         let line = line?;
-        let Ok(event) = serde_json::from_str::<serde_json::Value>(&line).map_err(drop).and_then(|e| if e.get("event").is_some() { Ok(e) } else { Err(()) }) else {
-            if let Some(f) = log.as_mut() {
-                writeln!(f, "{line}")?;
+        let event = match serde_json::from_str::<serde_json::Value>(&line) {
+            Ok(e) if e.get("event").is_some() => e,
+            _ => {
+                if let Some(f) = log.as_mut() {
+                    writeln!(f, "{line}")?;
+                }
+                continue;
             }
-            continue;
         };
         if event["event"] == "done" {
             done = Some(event);

@@ -30,7 +30,6 @@ use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-
 pub struct BenchRequest {
     pub model: PathBuf,
     pub out: PathBuf,

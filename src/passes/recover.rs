@@ -129,7 +129,7 @@ impl Pass for Recover {
             Train::All => None,
             Train::Estimates => Some(present(model, &estimates)?),
         };
-        let opts = Training { schedule: Schedule { threads: o.schedule.threads(), ..o.schedule.clone() }, seed: o.seed, window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground };
+        let opts = Training { schedule: o.schedule.clone(), seed: o.seed, window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground };
         let outcome = distill(&mut trained, &teacher, &kept, &train.iter().map(image).collect::<Vec<_>>(), &check.iter().map(image).collect::<Vec<_>>(), &opts)?;
         cx.record_training(&outcome);
         let after = errors(&trained)?;

@@ -27,11 +27,11 @@ use std::collections::BTreeMap;
 /// sees and IoU at 0.95 does.
 pub const EDGE_WEIGHT: f64 = 1.0;
 
-/// What both QAT passes train with: their schedule (threads resolved), no window or subset
+/// What both QAT passes train with: their schedule, no window or subset
 /// (every weight of the whole frame), the box edges at `EDGE_WEIGHT`, and no class foreground
 /// term (QAT was measured without it; `recover`'s default is for pruned students).
 pub fn training(schedule: &Schedule, seed: u64) -> Training {
-    Training { schedule: Schedule { threads: schedule.threads(), ..schedule.clone() }, seed, window: None, trainable: None, box_edges: EDGE_WEIGHT, class_foreground: 0.0 }
+    Training { schedule: schedule.clone(), seed, window: None, trainable: None, box_edges: EDGE_WEIGHT, class_foreground: 0.0 }
 }
 
 pub struct Trained {

@@ -29,7 +29,6 @@ use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-
 pub struct ShipRequest {
     pub model: PathBuf,
     pub out: PathBuf,

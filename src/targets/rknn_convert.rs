@@ -124,8 +124,9 @@ pub fn convert(req: &ConvertRequest) -> Result<ConvertReport> {
     });
     eprintln!("rknn-convert: building {} with rknn-toolkit2 and simulating {} frames", dir.join("model.rknn").display(), set.frames.len());
     let log_path = dir.join("rknn_build.log");
-    let result = rknn_toolkit::run(work.path(), &job, &log_path).inspect_err(|_| {
+    let result = rknn_toolkit::run(work.path(), &job, Some(&log_path)).map_err(|e| {
         let _ = std::fs::remove_file(&rknn_tmp);
+        anyhow!("rknn-toolkit2 failed: {e:#} (full log: {})", log_path.display())
     })?;
     std::fs::rename(&rknn_tmp, dir.join("model.rknn"))?;
     let log = String::from_utf8_lossy(&std::fs::read(&log_path)?).into_owned();

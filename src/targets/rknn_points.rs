@@ -70,7 +70,7 @@ pub fn toolkit_points(model: &ModelProto, frames: &[Tensor], outputs: &[String])
         "std_values": [vec![PIXEL_SCALE; channels]],
         "target_platform": "rk3588",
     });
-    let r = super::rknn_toolkit::run(work.path(), &job, &work.path().join("toolkit.log")).map_err(|e| anyhow!("rknn-toolkit2 could not plan the quantization: {e:#}"))?;
+    let r = super::rknn_toolkit::run(work.path(), &job, None).map_err(|e| anyhow!("rknn-toolkit2 could not plan the quantization: {e:#}"))?;
     serde_json::from_value(r["points"].clone()).map_err(|e| anyhow!("the toolkit's quantization points did not parse: {e}"))
 }
 

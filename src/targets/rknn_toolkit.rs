@@ -3,7 +3,7 @@
 //! through the protocol of the torch workers (`pyenv::run_python`: the worker turn, JSON
 //! events on stdout, its `done` event the result).
 
-use anyhow::{anyhow, Result};
+use anyhow::Result;
 use std::path::Path;
 
 /// The NPU is fed 8-bit pixels; the model sees them divided by this.
@@ -23,12 +23,12 @@ pub fn pixels(v: &[f32]) -> Vec<f32> {
 }
 
 /// Runs the toolkit worker on `job` in `work` (where the toolkit leaves its own dumps); what
-/// the toolkit prints goes to `log`. Returns the worker's result.
-pub fn run(work: &Path, job: &serde_json::Value, log: &Path) -> Result<serde_json::Value> {
+/// the toolkit prints goes to `log` when given. Returns the worker's result, or its failure
+/// with the last line it wrote on stderr.
+pub fn run(work: &Path, job: &serde_json::Value, log: Option<&Path>) -> Result<serde_json::Value> {
     let python = crate::pyenv::toolkit_python()?;
     std::fs::write(work.join("rknn_worker.py"), WORKER)?;
     let job_path = work.join("job.json");
     std::fs::write(&job_path, serde_json::to_vec(job)?)?;
-    crate::pyenv::run_python(&python, work, "rknn_worker.py", &[job_path.as_os_str()], 1, Some(log), |_| {})
-        .map_err(|e| anyhow!("rknn-toolkit2 failed: {e:#} (full log: {})", log.display()))
+    crate::pyenv::run_python(&python, work, "rknn_worker.py", &[job_path.as_os_str()], 1, log, |_| {})
 }
