@@ -371,6 +371,34 @@ def experiments(gpu):
 
 # --- the record ------------------------------------------------------------------------------
 
+# Figures that measure time or load: a rerun may change them; every other number, flag and hash
+# (mAP, agreement, error, sizes, MACs, bytes' digests) must come back the same.
+TIMING = re.compile(r"(_ms|ms|seconds|per_second|_s|load\w*|screen|said|recommended|started)$")
+
+
+def leaves(x, path=""):
+    if isinstance(x, dict):
+        for k, v in x.items():
+            if not TIMING.search(k) and k != "previous":
+                yield from leaves(v, f"{path}.{k}" if path else k)
+    elif isinstance(x, list):
+        for i, v in enumerate(x):
+            yield from leaves(v, f"{path}[{i}]")
+    elif not isinstance(x, str) or re.fullmatch(r"[0-9a-f]{64}", x):
+        yield path, x
+
+
+def repeat(before, record):
+    """How this record's figures compare with the committed record it replaces, when both were
+    measured on the same kind of CPU: which figures that are not times came back the same."""
+    if not before or before["machine"]["cpu"] != record["machine"]["cpu"]:
+        return None
+    old, new = dict(leaves(before["figures"])), dict(leaves(record["figures"]))
+    shared = sorted(k for k in new if k in old)
+    return {"commit": before["commit"], "compared": len(shared),
+            "differ": [{"figure": k, "before": old[k], "now": new[k]} for k in shared if old[k] != new[k]]}
+
+
 def git(*args):
     return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
 
@@ -428,6 +456,7 @@ def measure(names, tier):
         }
         if env:
             record["environment"] = env
+        record["repeat"] = repeat(previous(name), record)
         (ROOT / RECORDS / f"{name}.json").write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
         print(f"results: {name}: recorded in {record['seconds']:.0f} s", file=sys.stderr, flush=True)
     return failed

@@ -160,6 +160,14 @@ def block(r):
     load = r["machine"].get("load_before")
     lines = [f"**Record `{r['name']}`** ({r['tier']} tier of `scripts/results`): {r['date']}, {machine(r['machine'])}"
              f"{f', load {load} at the start' if load is not None else ''}; commit {commit}; {dur(r['seconds'])}.", ""]
+    rep = r.get("repeat")
+    if rep:
+        same = rep["compared"] - len(rep["differ"])
+        lines += [f"Against the record it replaced (commit {rep['commit'][:10]}, the same CPU): {same} of "
+                  f"{rep['compared']} figures other than times the same" +
+                  ("." if not rep["differ"] else "; differ: " + ", ".join(
+                      f"`{d['figure']}` {d['before']} → {d['now']}" for d in rep["differ"][:8]) +
+                   (f" and {len(rep['differ']) - 8} more" if len(rep["differ"]) > 8 else "") + "."), ""]
     lines += fn(r["figures"]) + ["", "Commands (from the repository root; seconds):", ""]
     lines += [f"- `{c['command']}` ({c['seconds']:.0f} s)" for c in r["commands"]]
     return lines
