@@ -32,6 +32,26 @@ pub enum Command {
         #[arg(long)]
         calib: Option<PathBuf>,
     },
+    /// Where a model's run time goes on each engine: per operator type and per layer, with each
+    /// layer's MACs, the activation bytes it moves, and the GMAC/s it reaches.
+    Profile {
+        model: PathBuf,
+        /// Engines to profile (default: both).
+        #[arg(long, value_enum, value_delimiter = ',')]
+        engine: Vec<crate::runtime::Engine>,
+        /// Camera blur map, for a model whose blur map is a graph input.
+        #[arg(long)]
+        psf: Option<PathBuf>,
+        /// A folder of frames: the first is run (default: a simulated frame).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Threads for ONNX Runtime and tract alike (default: every core).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Print the profiles as JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// Run a pass pipeline and write DIR/model.onnx, DIR/report.json and DIR/manifest.yaml.
     Compile {
         model: PathBuf,
@@ -427,6 +447,17 @@ pub fn run(cli: Cli) -> Result<u8> {
                 println!("{}", serde_json::to_string_pretty(&report)?);
             } else {
                 print!("{}", report.render());
+            }
+        }
+        Command::Profile { model, engine, psf, data, threads, json } => {
+            let engines = if engine.is_empty() { vec![crate::runtime::Engine::Ort, crate::runtime::Engine::Tract] } else { engine };
+            let timed: Vec<_> = engines.iter().map(|e| (model.display().to_string(), *e, model.clone())).collect();
+            let t = crate::variants::Timing { original: &model, timed: &timed, data: data.as_deref(), psf: psf.as_deref(), runs: 0, threads: threads_or_all(threads)? };
+            let profiles: Vec<_> = crate::variants::profile_each(&t)?.into_iter().map(|(_, p)| p).collect();
+            if json {
+                println!("{}", serde_json::to_string_pretty(&profiles)?);
+            } else {
+                println!("{}", profiles.iter().map(|p| p.render()).collect::<Vec<_>>().join("\n"));
             }
         }
         Command::Compile { model, pipeline, out, psf, keep_outputs, calib, external_data, scene, target, threads, json } => {

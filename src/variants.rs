@@ -5,7 +5,7 @@
 
 use crate::compile::CompileReport;
 use crate::pipeline::Recipe;
-use crate::runtime::{self, Engine, Runtime};
+use crate::runtime::{self, op_profile::{self, OpProfile}, Engine, Runtime};
 use crate::tensor::Tensor;
 use anyhow::{anyhow, Result};
 use std::path::{Path, PathBuf};
@@ -106,13 +106,7 @@ pub struct Timing<'a> {
 /// Median milliseconds of the original on ORT, then of each timed model, all interleaved in
 /// one loop on the same frame, every session on the same threads.
 pub fn time_together(t: &Timing) -> Result<Vec<f64>> {
-    let reference = crate::verify::side(t.original, "original")?;
-    let (h, w) = reference.input.shape;
-    let frame = match t.data {
-        Some(d) => crate::frames::load_folder(d, h, w)?.swap_remove(0),
-        None => crate::frames::synthetic(1, h, w, 0).swap_remove(0),
-    };
-    let psf = t.psf.map(crate::verify::blur_input).transpose()?;
+    let (reference, frame, psf) = timing_frame(t)?;
     let mut loaded: Vec<(String, Box<dyn Runtime>, Vec<(String, Tensor)>)> = Vec::new();
     let inputs = crate::verify::feeds(&reference, &frame, psf.as_ref())?;
     loaded.push(("original/ort".into(), runtime::load(Engine::Ort, &reference.model, &inputs, t.threads)?, inputs));
@@ -127,6 +121,32 @@ pub fn time_together(t: &Timing) -> Result<Vec<f64>> {
     }
     let latency = crate::runtime::latency::interleaved(&mut models, t.runs)?;
     Ok(latency.into_iter().map(|l| l.median_ms).collect())
+}
+
+/// The original, and the frame and blur map every timed model runs on.
+fn timing_frame(t: &Timing) -> Result<(crate::verify::Side, crate::frames::Frame, Option<Tensor>)> {
+    let reference = crate::verify::side(t.original, "original")?;
+    let (h, w) = reference.input.shape;
+    let frame = match t.data {
+        Some(d) => crate::frames::load_folder(d, h, w)?.swap_remove(0),
+        None => crate::frames::synthetic(1, h, w, 0).swap_remove(0),
+    };
+    let psf = t.psf.map(crate::verify::blur_input).transpose()?;
+    Ok((reference, frame, psf))
+}
+
+/// Where the time goes in each timed model on its engine, on the frame [`time_together`]
+/// times (one model after another: a profile's shares and GMAC/s are its own run's, not a
+/// comparison between models).
+pub fn profile_each(t: &Timing) -> Result<Vec<(String, OpProfile)>> {
+    let (_, frame, psf) = timing_frame(t)?;
+    let mut out = Vec::new();
+    for (name, engine, path) in t.timed {
+        let side = crate::verify::side(path, name)?;
+        let inputs = crate::verify::feeds(&side, &frame, psf.as_ref())?;
+        out.push((name.clone(), op_profile::profile(*engine, &side.model, &inputs, t.threads)?));
+    }
+    Ok(out)
 }
 
 #[cfg(test)]

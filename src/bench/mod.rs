@@ -23,7 +23,8 @@ use crate::compile::{compile, CompileRequest};
 use crate::fsutil::{ensure_dir, write_atomic, StagedDir};
 use crate::pipeline::PassContext;
 use crate::runtime::Engine;
-use crate::variants::{last_pass_of, recipe, time_together, with_recover_steps, Failed, Timing};
+use crate::runtime::op_profile::OpProfile;
+use crate::variants::{last_pass_of, profile_each, recipe, time_together, with_recover_steps, Failed, Timing};
 use crate::verify::{verify, VerifyRequest};
 use anyhow::{anyhow, Result};
 use serde::Serialize;
@@ -79,7 +80,16 @@ pub struct BenchReport {
     pub notes: Vec<String>,
     /// Seconds per compile, by variant.
     pub compile_seconds: Vec<(String, f64)>,
+    /// Where each timed model's run goes (per operator type and per layer), on its engine.
+    pub profiles: Vec<Profiled>,
     pub seconds: f64,
+}
+
+#[derive(Serialize)]
+pub struct Profiled {
+    pub variant: String,
+    #[serde(flatten)]
+    pub profile: OpProfile,
 }
 
 pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
@@ -169,7 +179,11 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
         }
     }
     eprintln!("bench: timing the original and {} variant/engine pairs together, {} runs each", timed.len(), req.runs);
-    let latency = time_together(&Timing { original: &req.model, timed: &timed, data: req.data.as_deref(), psf: req.psf.as_deref(), runs: req.runs, threads: req.threads })?;
+    let timing = Timing { original: &req.model, timed: &timed, data: req.data.as_deref(), psf: req.psf.as_deref(), runs: req.runs, threads: req.threads };
+    let latency = time_together(&timing)?;
+    eprintln!("bench: profiling each of them, per operator and layer");
+    let every: Vec<(String, crate::runtime::Engine, PathBuf)> = std::iter::once(("original".to_string(), crate::runtime::Engine::Ort, req.model.clone())).chain(timed.iter().cloned()).collect();
+    let profiles = profile_each(&Timing { timed: &every, ..timing })?.into_iter().map(|(variant, profile)| Profiled { variant, profile }).collect();
     let original = latency[0];
     rows.insert(0, Row::new("original", "ort", 0.0, Some(1.0)));
     for (row, ms) in rows.iter_mut().zip(&latency) {
@@ -188,6 +202,7 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
         failed: failed.lines(),
         notes,
         compile_seconds,
+        profiles,
         seconds: 0.0,
     };
     let svg = plot::svg(&report.rows, &report.model);
@@ -234,6 +249,19 @@ impl BenchReport {
         }
         for n in &self.notes {
             s += &format!("\nNote: {n}.");
+        }
+        if !self.profiles.is_empty() {
+            s += "\n\n## Where the time goes\n\nEach model profiled on its engine (its own runs, not the loop above): the three operator types and layers that take the most of its kernels' time; a layer's GMAC/s against the best any layer reached on that engine here, and the activation bytes it moved per second.\n\n| variant | engine | run ms | GMAC/s (best layer) | top operators | top layers |\n|---|---|---:|---:|---|---|\n";
+            for p in &self.profiles {
+                let f = &p.profile;
+                let ops = f.by_op.iter().take(3).map(|o| format!("{} {:.0}%", o.op, o.share * 100.0)).collect::<Vec<_>>().join(", ");
+                let layers = f.layers.iter().take(3).map(|l| format!("`{}` {:.2} ms ({}, {:.1} GB/s)", l.node, l.ms, l.gmacs_per_s.map_or("no MACs".into(), |g| format!("{g:.1} GMAC/s")), l.gbytes_per_s)).collect::<Vec<_>>().join("; ");
+                let engine = match f.engine {
+                    crate::runtime::Engine::Ort => "ort",
+                    crate::runtime::Engine::Tract => "tract",
+                };
+                s += &format!("| {} | {engine} | {:.1} | {:.1} ({:.1}) | {ops} | {layers} |\n", p.variant, f.run_ms, f.gmacs_per_s, f.best_gmacs_per_s);
+            }
         }
         s += "\n\nCompile seconds: ";
         s += &self.compile_seconds.iter().map(|(v, t)| format!("{v} {t:.1}")).collect::<Vec<_>>().join(", ");

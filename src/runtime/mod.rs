@@ -4,6 +4,7 @@
 //! ([`crate::onnx::edit::expose_outputs`] rewrites the model before the session is built).
 
 pub mod latency;
+pub mod op_profile;
 pub mod ort_lib;
 pub mod ort_profile;
 pub mod ort_runtime;

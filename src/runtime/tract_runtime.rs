@@ -80,16 +80,29 @@ pub fn typed_model(model: &ModelProto, inputs: &[(String, Tensor)]) -> Result<(T
     Ok((typed, input_names, output_names))
 }
 
+impl TractRuntime {
+    /// The optimized plan (the profiler runs it node by node).
+    pub fn plan(&self) -> &Arc<TypedRunnableModel> {
+        &self.plan
+    }
+
+    /// `inputs` as the plan takes them, in its input order.
+    pub fn input_values(&self, inputs: &[(String, Tensor)]) -> Result<tract_onnx::prelude::TVec<tract_onnx::prelude::TValue>> {
+        let mut values = tvec![];
+        for name in &self.input_names {
+            values.push(to_tract(lookup(inputs, name)?)?.into_tvalue());
+        }
+        Ok(values)
+    }
+}
+
 impl Runtime for TractRuntime {
     fn name(&self) -> &'static str {
         "tract"
     }
 
     fn run(&mut self, inputs: &[(String, Tensor)]) -> Result<NamedTensors> {
-        let mut values = tvec![];
-        for name in &self.input_names {
-            values.push(to_tract(lookup(inputs, name)?)?.into_tvalue());
-        }
+        let values = self.input_values(inputs)?;
         let out = self.plan.run(values).map_err(|e| anyhow!("tract failed: {e:#}"))?;
         self.output_names.iter().cloned().zip(out.iter().map(|v| from_tract(v))).map(|(n, t)| Ok((n, t?))).collect()
     }
