@@ -149,7 +149,28 @@ def pruned(f):
              "without training the same model twice."]
 
 
-BLOCKS = {"lossless": lossless, "int8": int8, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
+def latency(f):
+    by = {(r["variant"], r["engine"]): r for r in f["rows"]}
+    rows = []
+    for r in f["rows"]:
+        top = ", ".join(f"{o['op']} {o['share']:.0%}" for o in r["ops"][:3])
+        rows.append([f"`{r['variant']}`: {r['what']}", r["engine"], f"{r['median_ms']:.2f}", f"{r['ratio']:.3f}×",
+                     f"{r['macs_ratio']:.3f}×", f"{r['gmacs_per_s']:.1f} ({r['best_gmacs_per_s']:.1f})", top])
+    out = table(["variant", "engine", "ms", "against f32", "MACs", "GMAC/s (best layer)", "top operators"], rows)
+    o = lambda v: by[(v, "ort")]["ratio"]
+    t = lambda v: by[(v, "tract")]["median_ms"] / by[(v, "ort")]["median_ms"]
+    out += ["", f"On ONNX Runtime, against `detect-f32`: `detect-int8` {o('int8'):.3f}× (goal ≤ 0.8), "
+                f"`detect-pruned-f32` {o('pruned-f32'):.3f}× at {by[('pruned-f32', 'ort')]['macs_ratio']:.3f}× the MACs "
+                f"(goal ≤ 1.5× its MAC ratio), `detect-pruned-int8` {o('pruned-int8'):.3f}× (goal ≤ 0.5); with "
+                f"`narrow_float: 16` {o('int8-narrow'):.3f}× and {o('pruned-int8-narrow'):.3f}×. tract against ONNX Runtime: "
+                + ", ".join(f"`{v}` {t(v):.2f}×" for v in ("f32", "pruned-f32", "int8", "pruned-int8")) + "."]
+    slow = [(l["node"], l["ms"], l.get("gmacs_per_s")) for l in by[("pruned-int8", "ort")]["layers"][:3]]
+    out += ["", "The slowest layers of `pruned-int8` on ONNX Runtime: " + "; ".join(
+        f"`{n}` {ms:.2f} ms" + (f" ({g:.1f} GMAC/s)" if g else "") for n, ms, g in slow) + "."]
+    return out
+
+
+BLOCKS = {"lossless": lossless, "latency-640": latency, "int8": int8, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
           "rebuild": rebuild, "recipe-bytes": recipe_bytes,
           "broken-builds": broken_builds, "suite": suite}
 
@@ -206,6 +227,14 @@ def readme_rows(recs):
         row(f"`detect-pruned-f32` as shipped on a GPU ({gpu[0]['machine']['gpu']})",
             "recovery in " + " / ".join(f"{dur(f['recover']['seconds'])} ({f['model']})" for f in fs)
             + "; keeps " + " / ".join(f"{f['kept_f32']:.3f}×" for f in fs), gpu[0]["name"], "pruning.md")
+    if "latency-640" in recs:
+        by = {(r["variant"], r["engine"]): r for r in recs["latency-640"]["figures"]["rows"]}
+        o = lambda v: by[(v, "ort")]["ratio"]
+        row("CPU latency at 640×480 (v5 w0.25, ONNX Runtime, against `detect-f32`)",
+            f"`detect-int8` {o('int8'):.2f}×; `detect-pruned-f32` {o('pruned-f32'):.2f}× at "
+            f"{by[('pruned-f32', 'ort')]['macs_ratio']:.2f}× the MACs; `detect-pruned-int8` {o('pruned-int8'):.2f}× "
+            f"({o('pruned-int8-narrow'):.2f}× with `narrow_float: 16`); tract {by[('f32', 'tract')]['median_ms'] / by[('f32', 'ort')]['median_ms']:.1f}× "
+            "ONNX Runtime on `detect-f32`", "latency-640", "latency.md")
     if "int8" in recs:
         ms = recs["int8"]["figures"]["models"]
         row("INT8 without pruning (`detect-int8`)",

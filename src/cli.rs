@@ -33,9 +33,11 @@ pub enum Command {
         calib: Option<PathBuf>,
     },
     /// Where a model's run time goes on each engine: per operator type and per layer, with each
-    /// layer's MACs, the activation bytes it moves, and the GMAC/s it reaches.
+    /// layer's MACs, the activation bytes it moves, and the GMAC/s it reaches. With several
+    /// models, first all of them timed in one interleaved loop (ratios against the first).
     Profile {
-        model: PathBuf,
+        #[arg(required = true)]
+        models: Vec<PathBuf>,
         /// Engines to profile (default: both).
         #[arg(long, value_enum, value_delimiter = ',')]
         engine: Vec<crate::runtime::Engine>,
@@ -48,6 +50,9 @@ pub enum Command {
         /// Threads for ONNX Runtime and tract alike (default: every core).
         #[arg(long)]
         threads: Option<usize>,
+        /// Timed runs per model and engine in the interleaved loop (with several models).
+        #[arg(long, default_value_t = 20)]
+        runs: usize,
         /// Print the profiles as JSON.
         #[arg(long)]
         json: bool,
@@ -449,15 +454,15 @@ pub fn run(cli: Cli) -> Result<u8> {
                 print!("{}", report.render());
             }
         }
-        Command::Profile { model, engine, psf, data, threads, json } => {
+        Command::Profile { models, engine, psf, data, threads, runs, json } => {
             let engines = if engine.is_empty() { vec![crate::runtime::Engine::Ort, crate::runtime::Engine::Tract] } else { engine };
-            let timed: Vec<_> = engines.iter().map(|e| (model.display().to_string(), *e, model.clone())).collect();
-            let t = crate::variants::Timing { original: &model, timed: &timed, data: data.as_deref(), psf: psf.as_deref(), runs: 0, threads: threads_or_all(threads)? };
-            let profiles: Vec<_> = crate::variants::profile_each(&t)?.into_iter().map(|(_, p)| p).collect();
+            // One model: its profiles alone (no timing loop to compare against).
+            let runs = if models.len() > 1 { runs.max(1) } else { 1 };
+            let c = crate::variants::compare(&models, &engines, data.as_deref(), psf.as_deref(), runs, threads_or_all(threads)?)?;
             if json {
-                println!("{}", serde_json::to_string_pretty(&profiles)?);
+                println!("{}", serde_json::to_string_pretty(&c)?);
             } else {
-                println!("{}", profiles.iter().map(|p| p.render()).collect::<Vec<_>>().join("\n"));
+                print!("{}", c.render());
             }
         }
         Command::Compile { model, pipeline, out, psf, keep_outputs, calib, external_data, scene, target, threads, json } => {

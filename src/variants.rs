@@ -149,6 +149,62 @@ pub fn profile_each(t: &Timing) -> Result<Vec<(String, OpProfile)>> {
     Ok(out)
 }
 
+/// Several artifacts on this CPU: every model on every engine timed in one interleaved loop
+/// (ratios against the first model on the same engine, from the same run), then each
+/// profiled per operator and layer.
+#[derive(serde::Serialize)]
+pub struct Comparison {
+    pub threads: usize,
+    pub runs: usize,
+    pub rows: Vec<Compared>,
+}
+
+#[derive(serde::Serialize)]
+pub struct Compared {
+    pub model: String,
+    pub engine: Engine,
+    pub median_ms: f64,
+    /// Against the first model's median on the same engine.
+    pub ratio: f64,
+    pub macs: u64,
+    pub profile: OpProfile,
+}
+
+pub fn compare(models: &[PathBuf], engines: &[Engine], data: Option<&Path>, psf: Option<&Path>, runs: usize, threads: usize) -> Result<Comparison> {
+    let first = models.first().ok_or_else(|| anyhow!("give at least one model"))?;
+    let timed: Vec<(String, Engine, PathBuf)> = models.iter().flat_map(|m| engines.iter().map(move |e| (m.display().to_string(), *e, m.clone()))).collect();
+    let t = Timing { original: first, timed: &timed, data, psf, runs, threads };
+    // The first entry is the first model on ORT, timed as the loop's reference.
+    let latency = time_together(&t)?;
+    let profiles = profile_each(&t)?;
+    let mut rows: Vec<Compared> = Vec::new();
+    for (((model, engine, _), ms), (_, profile)) in timed.iter().zip(&latency[1..]).zip(profiles) {
+        let base = rows.iter().find(|r| r.engine == *engine).map_or(*ms, |r| r.median_ms);
+        rows.push(Compared { model: model.clone(), engine: *engine, median_ms: *ms, ratio: ms / base, macs: profile.macs, profile });
+    }
+    Ok(Comparison { threads, runs, rows })
+}
+
+impl Comparison {
+    pub fn render(&self) -> String {
+        let mut s = String::new();
+        if self.rows.len() > self.rows.iter().filter(|r| r.model == self.rows[0].model).count() {
+            s += &format!("interleaved, {} runs each on {} threads; ratios against the first model on the same engine\n\n", self.runs, self.threads);
+            s += "  model                                               engine     ms    ratio   M MACs  MAC ratio\n";
+            for r in &self.rows {
+                let first = self.rows.iter().find(|x| x.engine == r.engine).expect("each engine has a first row");
+                let engine = serde_json::to_value(r.engine).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default();
+                s += &format!("  {:<50} {:<6} {:>7.2} {:>7.3}x {:>8.1} {:>9.3}x\n", r.model, engine, r.median_ms, r.ratio, r.macs as f64 / 1e6, r.macs as f64 / first.macs.max(1) as f64);
+            }
+            s += "\n";
+        }
+        for r in &self.rows {
+            s += &format!("{}\n{}\n", r.model, r.profile.render());
+        }
+        s
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -61,6 +61,10 @@ pub struct Options {
     pub max_float_layers: usize,
     /// Nodes (or their output values) to leave in float.
     pub keep_float: Vec<String>,
+    /// Convolutions with fewer output channels per group than this stay float, with the
+    /// element-wise nodes that read only them (`quant::narrow`): ONNX Runtime's integer
+    /// convolution is slower than its float one there. 0: every layer is a candidate.
+    pub narrow_float: usize,
     /// After mixed precision: keep float the heavy convolutions ONNX Runtime runs the model
     /// faster without quantizing, timed on this machine (`quant::speed`). The choice follows the
     /// compiling machine; `keep_float` pins one.
@@ -213,6 +217,7 @@ impl Default for Options {
             error_budget: None,
             max_float_layers: 8,
             keep_float: Vec::new(),
+            narrow_float: 0,
             float_where_faster: false,
             seed: 0,
             format: Format::Qdq,
@@ -282,7 +287,8 @@ impl Pass for Quantize {
         let analysis: Vec<_> = feeds.iter().take(o.analysis_frames.max(1)).cloned().collect();
 
         clock.lap("frames");
-        let keep: HashSet<String> = o.keep_float.iter().cloned().collect();
+        let narrow = crate::quant::narrow::narrow_float(&graph, o.narrow_float);
+        let keep: HashSet<String> = o.keep_float.iter().cloned().chain(narrow.keys().cloned()).collect();
         let base = plan(&graph, &keep);
         let values: Vec<String> = base.quantized_values(&graph).into_iter().collect();
         // A sigmoid's output range follows from its input's (it is monotonic), and a
@@ -433,6 +439,7 @@ impl Pass for Quantize {
             "mixed_precision": { "error_budget": o.error_budget, "kept_float": mixed.kept, "tried_and_rejected": mixed.rejected, "note": mixed.warning },
             "hard_limit": o.hard_limit,
             "float_where_faster": speed,
+            "narrow_float": narrow.iter().map(|(node, why)| serde_json::json!({"node": node, "why": why})).collect::<Vec<_>>(),
             "float_nodes": float_nodes,
             "output_errors": outputs,
             "worst_output_rel_l2": worst_rel_l2(&outputs),

@@ -5,6 +5,7 @@ pub mod at_points;
 pub mod attribution;
 pub mod collect;
 pub mod histogram;
+pub mod narrow;
 pub mod params;
 pub mod plan;
 pub mod qat;
