@@ -45,8 +45,23 @@ fn bench_measures_every_variant_and_marks_the_pareto_front() {
     assert!(num(f32_ort, "rel_l2") <= 1e-5, "the lossless compile stays lossless: {f32_ort}");
     assert!(rows.iter().any(|r| r["pareto_rel_l2"].as_bool().unwrap()));
 
+    // Every timed model profiled on its engine: its kernels' shares add up, its layers carry
+    // their MACs, and the whole run takes at least its kernels' time.
+    let profiles = report["profiles"].as_array().unwrap();
+    let mut profiled: Vec<String> = profiles.iter().map(|p| format!("{}/{}", p["variant"].as_str().unwrap(), p["engine"].as_str().unwrap())).collect();
+    profiled.sort();
+    assert_eq!(profiled, expected, "one profile per timed model and engine");
+    for p in profiles {
+        let share: f64 = p["by_op"].as_array().unwrap().iter().map(|o| num(o, "share")).sum();
+        assert!((share - 1.0).abs() < 1e-9, "shares add up: {share}");
+        assert!(num(p, "kernel_ms") > 0.0 && num(p, "run_ms") > 0.0, "{p}");
+        assert!(p["macs"].as_u64().unwrap() > 0 && p["layers"].as_array().unwrap().iter().any(|l| l["macs"].as_u64().unwrap() > 0), "the slowest layers include convolutions: {p}");
+    }
+
     let md = std::fs::read_to_string(out.join("bench.md")).unwrap();
-    assert_eq!(md.lines().filter(|l| l.starts_with("| ") && !l.starts_with("| variant")).count(), expected.len(), "{md}");
+    let (latency_table, time_goes) = md.split_once("## Where the time goes").expect("bench.md has the profiles");
+    assert_eq!(latency_table.lines().filter(|l| l.starts_with("| ") && !l.starts_with("| variant")).count(), expected.len(), "{md}");
+    assert_eq!(time_goes.lines().filter(|l| l.starts_with("| ") && !l.starts_with("| variant")).count(), expected.len(), "{md}");
     assert_eq!(md.matches("Not measured: ").count(), skipped.len(), "{md}");
     let svg = std::fs::read_to_string(out.join("bench.svg")).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("pruned-int8/tract") && svg.contains("Pareto"));
