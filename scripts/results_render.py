@@ -149,6 +149,11 @@ def pruned(f):
              "without training the same model twice."]
 
 
+def camera(f):
+    return table(["model", "mAP@0.5:0.95 at 256×192", "at 640×480", "mAP@0.5 at 640×480", "frames"],
+                 [[m["model"], f4(m["map_256"]), f4(m["map_640"]), f4(m["map50_640"]), m["frames"]] for m in f["models"]])
+
+
 def latency(f):
     by = {(r["variant"], r["engine"]): r for r in f["rows"]}
     rows = []
@@ -170,7 +175,7 @@ def latency(f):
     return out
 
 
-BLOCKS = {"lossless": lossless, "latency-640": latency, "int8": int8, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
+BLOCKS = {"lossless": lossless, "latency-640": latency, "camera-640": camera, "int8": int8, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
           "rebuild": rebuild, "recipe-bytes": recipe_bytes,
           "broken-builds": broken_builds, "suite": suite}
 
@@ -227,6 +232,11 @@ def readme_rows(recs):
         row(f"`detect-pruned-f32` as shipped on a GPU ({gpu[0]['machine']['gpu']})",
             "recovery in " + " / ".join(f"{dur(f['recover']['seconds'])} ({f['model']})" for f in fs)
             + "; keeps " + " / ".join(f"{f['kept_f32']:.3f}×" for f in fs), gpu[0]["name"], "pruning.md")
+    if "camera-640" in recs:
+        ms = recs["camera-640"]["figures"]["models"]
+        row("the trained width-0.25 weights at 640×480 (no training at that size)",
+            "mAP " + "; ".join(f"{m['model']}: {f4(m['map_640'])} (at 256×192: {f4(m['map_256'])})" for m in ms)
+            + " on the same scenes", "camera-640", "camera.md")
     if "latency-640" in recs:
         by = {(r["variant"], r["engine"]): r for r in recs["latency-640"]["figures"]["rows"]}
         o = lambda v: by[(v, "ort")]["ratio"]

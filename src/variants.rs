@@ -193,8 +193,7 @@ impl Comparison {
             s += "  model                                               engine     ms    ratio   M MACs  MAC ratio\n";
             for r in &self.rows {
                 let first = self.rows.iter().find(|x| x.engine == r.engine).expect("each engine has a first row");
-                let engine = serde_json::to_value(r.engine).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default();
-                s += &format!("  {:<50} {:<6} {:>7.2} {:>7.3}x {:>8.1} {:>9.3}x\n", r.model, engine, r.median_ms, r.ratio, r.macs as f64 / 1e6, r.macs as f64 / first.macs.max(1) as f64);
+                s += &format!("  {:<50} {:<6} {:>7.2} {:>7.3}x {:>8.1} {:>9.3}x\n", r.model, r.engine.as_str(), r.median_ms, r.ratio, r.macs as f64 / 1e6, r.macs as f64 / first.macs.max(1) as f64);
             }
             s += "\n";
         }

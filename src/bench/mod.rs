@@ -256,11 +256,7 @@ impl BenchReport {
                 let f = &p.profile;
                 let ops = f.by_op.iter().take(3).map(|o| format!("{} {:.0}%", o.op, o.share * 100.0)).collect::<Vec<_>>().join(", ");
                 let layers = f.layers.iter().take(3).map(|l| format!("`{}` {:.2} ms ({}, {:.1} GB/s)", l.node, l.ms, l.gmacs_per_s.map_or("no MACs".into(), |g| format!("{g:.1} GMAC/s")), l.gbytes_per_s)).collect::<Vec<_>>().join("; ");
-                let engine = match f.engine {
-                    crate::runtime::Engine::Ort => "ort",
-                    crate::runtime::Engine::Tract => "tract",
-                };
-                s += &format!("| {} | {engine} | {:.1} | {:.1} ({:.1}) | {ops} | {layers} |\n", p.variant, f.run_ms, f.gmacs_per_s, f.best_gmacs_per_s);
+                s += &format!("| {} | {} | {:.1} | {:.1} ({:.1}) | {ops} | {layers} |\n", p.variant, f.engine.as_str(), f.run_ms, f.gmacs_per_s, f.best_gmacs_per_s);
             }
         }
         s += "\n\nCompile seconds: ";

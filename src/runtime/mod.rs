@@ -31,6 +31,16 @@ pub enum Engine {
     Tract,
 }
 
+impl Engine {
+    /// The name reports and tables use (as serialized).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Engine::Ort => "ort",
+            Engine::Tract => "tract",
+        }
+    }
+}
+
 /// Builds a session for `model` on `threads` threads; `inputs` fixes the shapes for engines
 /// that want them up front. Wherever engines are compared they get the same thread count.
 pub fn load(engine: Engine, model: &ModelProto, inputs: &[(String, Tensor)], threads: usize) -> Result<Box<dyn Runtime>> {
