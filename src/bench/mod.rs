@@ -1,7 +1,7 @@
 //! `pdi-compile bench MODEL -o DIR`: run time against error for every deployment variant.
 //!
 //! Variants: unpruned and pruned with recovery (detect-f32 / detect-pruned-f32), each in
-//! f32, FP16 and INT8, and pruned without recovery (detect-pruned-f32-norecover) in f32 (the last pass of detect-fp16 / detect-int8 applied to the f32 compile, so pruning
+//! f32, FP16 and INT8, and pruned without recovery (detect-pruned-f32-norecover) in f32 (the last pass of detect-fp16 / detect-int8 (detect-pruned-int8 for the pruned model) applied to the f32 compile, so pruning
 //! and the lossless passes run once), each on ONNX Runtime and tract, beside the original on
 //! ONNX Runtime. Every variant is verified against the original on the same frames: rel L2
 //! of the detection outputs and mAP@0.5:0.95 agreement (the original's detections as
@@ -109,14 +109,15 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
     };
     let fp16 = write_recipe("fp16", &last_pass_of(recipe("detect-fp16"), "fp16")?)?;
     let int8 = write_recipe("int8", &last_pass_of(recipe("detect-int8"), "int8")?)?;
+    let pruned_int8 = write_recipe("pruned-int8", &last_pass_of(recipe("detect-pruned-int8"), "pruned-int8")?)?;
     let stages = [
         ("f32", None, write_recipe("f32", recipe("detect-f32"))?),
         ("pruned-norecover-f32", None, write_recipe("pruned-norecover-f32", recipe("detect-pruned-f32-norecover"))?),
         ("pruned-f32", None, write_recipe("pruned-f32", &with_recover_steps(recipe("detect-pruned-f32"), req.recover_steps)?)?),
         ("fp16", Some("f32"), fp16.clone()),
-        ("int8", Some("f32"), int8.clone()),
+        ("int8", Some("f32"), int8),
         ("pruned-fp16", Some("pruned-f32"), fp16),
-        ("pruned-int8", Some("pruned-f32"), int8),
+        ("pruned-int8", Some("pruned-f32"), pruned_int8),
     ];
     let variant_dir = |v: &str| root.join("variants").join(v);
     let mut compile_seconds = Vec::new();

@@ -144,7 +144,7 @@ const FLAT: &[(&str, &[&str])] = &[
         "prune: {target: {macs: 0.28}, importance: l1, round_to: 8, compensate: lstsq, ridge: 0.05}",
         "recover: {steps: 8000, lr: 2.0e-3, batch: 8, frames: 2048}",
         "cleanup",
-        "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1}",
+        "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1, narrow_float: 16}",
     ]),
     ("detect-pruned-int8-norecover", &[
         "promote-constants",
@@ -157,7 +157,7 @@ const FLAT: &[(&str, &[&str])] = &[
         "dce",
         "prune: {ratio: 0.5, importance: l1, round_to: 8, compensate: lstsq, ridge: 0.05}",
         "cleanup",
-        "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1}",
+        "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1, narrow_float: 16}",
     ]),
     ("detect-pruned-int8-qat", &[
         "promote-constants",
