@@ -340,12 +340,14 @@ def suite(ctx):
 
 
 def own_passes(ctx, recipe, extra=""):
-    """A recipe's own passes without its base (to run on the base's output), with `extra`
-    options added to each of them."""
+    """A recipe's own passes without its base (to run on the base's output), with the option
+    `extra` ("key: value") set in each of them."""
     text = (ROOT / f"passes/{recipe}.yaml").read_text()
     own = text[text.index("\npasses:"):]
     if extra:
-        own = re.sub(r"\}\n", f", {extra}}}\n", own)
+        key = extra.split(":")[0]
+        own = "\n".join(re.sub(rf"\b{key}: [^,}}]+", extra, line) if f"{key}:" in line else
+                        re.sub(r"\}$", f", {extra}}}", line) for line in own.split("\n"))
     path = ctx.dir / f"{recipe}-own{'-' + re.sub(r'[^a-z0-9]+', '-', extra) if extra else ''}.yaml"
     path.write_text(f"name: {recipe}\n{own.lstrip()}")
     return path
@@ -409,7 +411,7 @@ def latency_640(ctx):
         ("int8-narrow", f"detect-int8 with {narrow}", "f32", own_passes(ctx, "detect-int8", narrow)),
         ("pruned-f32", "detect-pruned-f32", None, recipes / "detect-pruned-f32.yaml"),
         ("pruned-int8", "detect-pruned-int8", "pruned-f32", own_passes(ctx, "detect-pruned-int8")),
-        ("pruned-int8-narrow", f"detect-pruned-int8 with {narrow}", "pruned-f32", own_passes(ctx, "detect-pruned-int8", narrow)),
+        ("pruned-int8-all", "detect-pruned-int8 with narrow_float: 0 (every layer a candidate)", "pruned-f32", own_passes(ctx, "detect-pruned-int8", "narrow_float: 0")),
         ("pruned-f32-round16", "detect-pruned-f32 with round_to: 16", None, tried_prune / "detect-pruned-f32-round16.yaml"),
         ("pruned-f32-latency", "detect-pruned-f32 with target: {latency: 0.42}", None, tried_prune / "detect-pruned-f32-latency.yaml"),
     ]

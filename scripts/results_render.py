@@ -166,8 +166,9 @@ def latency(f):
     t = lambda v: by[(v, "tract")]["median_ms"] / by[(v, "ort")]["median_ms"]
     out += ["", f"On ONNX Runtime, against `detect-f32`: `detect-int8` {o('int8'):.3f}× (goal ≤ 0.8), "
                 f"`detect-pruned-f32` {o('pruned-f32'):.3f}× at {by[('pruned-f32', 'ort')]['macs_ratio']:.3f}× the MACs "
-                f"(goal ≤ 1.5× its MAC ratio), `detect-pruned-int8` {o('pruned-int8'):.3f}× (goal ≤ 0.5); with "
-                f"`narrow_float: 16` {o('int8-narrow'):.3f}× and {o('pruned-int8-narrow'):.3f}×. tract against ONNX Runtime: "
+                f"(goal ≤ 1.5× its MAC ratio), `detect-pruned-int8` {o('pruned-int8'):.3f}× (goal ≤ 0.5; "
+                f"{o('pruned-int8-all'):.3f}× without `narrow_float`); `detect-int8` with `narrow_float: 16` "
+                f"{o('int8-narrow'):.3f}×. tract against ONNX Runtime: "
                 + ", ".join(f"`{v}` {t(v):.2f}×" for v in ("f32", "pruned-f32", "int8", "pruned-int8")) + "."]
     slow = [(l["node"], l["ms"], l.get("gmacs_per_s")) for l in by[("pruned-int8", "ort")]["layers"][:3]]
     out += ["", "The slowest layers of `pruned-int8` on ONNX Runtime: " + "; ".join(
@@ -243,7 +244,7 @@ def readme_rows(recs):
         row("CPU latency at 640×480 (v5 w0.25, ONNX Runtime, against `detect-f32`)",
             f"`detect-int8` {o('int8'):.2f}×; `detect-pruned-f32` {o('pruned-f32'):.2f}× at "
             f"{by[('pruned-f32', 'ort')]['macs_ratio']:.2f}× the MACs; `detect-pruned-int8` {o('pruned-int8'):.2f}× "
-            f"({o('pruned-int8-narrow'):.2f}× with `narrow_float: 16`); tract {by[('f32', 'tract')]['median_ms'] / by[('f32', 'ort')]['median_ms']:.1f}× "
+            f"({o('pruned-int8-all'):.2f}× without `narrow_float`); tract {by[('f32', 'tract')]['median_ms'] / by[('f32', 'ort')]['median_ms']:.1f}× "
             "ONNX Runtime on `detect-f32`", "latency-640", "latency.md")
     if "int8" in recs:
         ms = recs["int8"]["figures"]["models"]
