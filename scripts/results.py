@@ -251,22 +251,12 @@ def previous(name):
 
 # --- full tier -------------------------------------------------------------------------------
 
-def int8_recipe(ctx):
-    """detect-pruned-int8's own passes (its base is detect-pruned-f32), to run on the f32 model:
-    the same compile as the whole recipe, without training the same model twice."""
-    text = (ROOT / "passes/detect-pruned-int8.yaml").read_text()
-    own = text[text.index("\npasses:"):]
-    path = ctx.dir / "detect-pruned-int8-own.yaml"
-    path.write_text(f"name: detect-pruned-int8\n{own.lstrip()}")
-    return path
-
-
 def pruned(model):
     def experiment(ctx):
         path = MODELS[model]
         f32 = ctx.dir / "f32"
         rep = compile_(ctx, path, "passes/detect-pruned-f32.yaml", f32)
-        q = compile_(ctx, f32 / "model.onnx", int8_recipe(ctx), ctx.dir / "int8")
+        q = compile_(ctx, f32 / "model.onnx", own_passes(ctx, "detect-pruned-int8"), ctx.dir / "int8")
         prune, rec = pass_of(rep, "prune"), pass_of(rep, "recover")
         tr = rec["details"]["training"]
         a, b = verify(ctx, path, f32 / "model.onnx"), verify(ctx, path, ctx.dir / "int8/model.onnx")
@@ -340,8 +330,9 @@ def suite(ctx):
 
 
 def own_passes(ctx, recipe, extra=""):
-    """A recipe's own passes without its base (to run on the base's output), with the option
-    `extra` ("key: value") set in each of them."""
+    """A recipe's own passes without its base (to run on the base's output: the same compile as
+    the whole recipe, without training the same model twice), with the option `extra`
+    ("key: value") set in each of them."""
     text = (ROOT / f"passes/{recipe}.yaml").read_text()
     own = text[text.index("\npasses:"):]
     if extra:
@@ -399,9 +390,9 @@ def latency_640(ctx):
     tried_prune = ctx.dir / "tried"
     tried_prune.mkdir()
     pruned_text = (recipes / "detect-pruned-f32.yaml").read_text()
-    for name, change in (("round16", "round_to: 16"), ("latency", "target: {latency: 0.42}")):
-        text = pruned_text.replace("round_to: 8", change) if name == "round16" else \
-            re.sub(r"target: \{macs: [0-9.]+\}", change, pruned_text)
+    tried = {"round16": pruned_text.replace("round_to: 8", "round_to: 16"),
+             "latency": re.sub(r"target: \{macs: [0-9.]+\}", "target: {latency: 0.42}", pruned_text)}
+    for name, text in tried.items():
         (tried_prune / f"detect-pruned-f32-{name}.yaml").write_text(text.replace("name: detect-pruned-f32", f"name: detect-pruned-f32-{name}"))
     narrow = "narrow_float: 16"
     # (variant, what it is, compiled from, recipe)

@@ -136,7 +136,7 @@ impl Costs {
             // the convolution's only reader.
             let source = match g.producer_of(n.input.first().map_or("", |s| s.as_str())) {
                 Some(p) if matches!(n.op_type.as_str(), "Relu" | "Sigmoid" | "Clip" | "LeakyRelu" | "HardSigmoid" | "Tanh")
-                    && cost::macs(p, inf) > 0 && g.consumers_of(&p.output[0]).len() == 1 => by_value.get(&p.output[0]).cloned().unwrap_or_else(|| p.name.clone()),
+                    && by_node.get(&p.name).is_some_and(|c: &(u64, u64)| c.0 > 0) && g.consumers_of(&p.output[0]).len() == 1 => by_value.get(&p.output[0]).cloned().unwrap_or_else(|| p.name.clone()),
                 _ => n.name.clone(),
             };
             for o in &n.output {
