@@ -104,6 +104,20 @@ class SE(nn.Module):
         return x * w
 
 
+def blur_at(psf_blur, size, window=None):
+    """The blur map on a feature grid of `size`: bilinear over the whole frame, or, for crops
+    (`window`: the frame's (H, W), the crop's (h, w) and each frame's (y, x) offset in pixels,
+    multiples of the grid's stride), the frame's map at the grid's stride cut to each crop, so
+    a crop sees the blur its pixels have in the whole frame."""
+    if window is None:
+        return F.interpolate(psf_blur, size=size, mode="bilinear", align_corners=False)
+    (fh, fw), (h, w), offsets = window
+    sy, sx = h // size[0], w // size[1]
+    full = F.interpolate(psf_blur, size=(fh // sy, fw // sx), mode="bilinear", align_corners=False)
+    return torch.stack([full[i, :, oy // sy:oy // sy + size[0], ox // sx:ox // sx + size[1]]
+                        for i, (oy, ox) in enumerate(offsets)])
+
+
 class PALSBridge(nn.Module):
     def __init__(self, c, groups=4, large_k=15):
         super().__init__()
@@ -128,12 +142,12 @@ class PALSBridge(nn.Module):
         g_lam = torch.clamp(gb[2] + self.alpha[2] * (1.0 - k), 0.0, 1.0)
         return g_s, g_l, g_lam
 
-    def forward(self, x, psf_blur):
+    def forward(self, x, psf_blur, window=None):
         c = x.shape[1]
         s = self.small(x)
         l = self.bn_l(self.pw(self.dw(x)))
         lam = self.bn_lam(F.conv2d(x, self.lap.expand(c, 1, 3, 3), padding=1, groups=c))
-        k = F.interpolate(psf_blur, size=x.shape[-2:], mode="bilinear", align_corners=False)
+        k = blur_at(psf_blur, x.shape[-2:], window)
         g_s, g_l, g_lam = self.gates(k)
         return self.bn_out(self.se(x + self.eta * (g_s * s + g_l * l + g_lam * lam)))
 
@@ -392,12 +406,13 @@ class PDINet(nn.Module):
         else:
             self.psf_blur = None
 
-    def forward(self, image, psf_blur=None):
+    def forward(self, image, psf_blur=None, window=None):
+        """window: for training on crops, where each image sits in its frame (see `blur_at`)."""
         if psf_blur is None:
             psf_blur = self.psf_blur
         e1, e2, e3 = self.unet.semi(image)
         recon = self.unet.decode(image, e1, e2, e3)
-        det = self.detect(self.neck(*self.backbone(self.bridge(e3, psf_blur))))
+        det = self.detect(self.neck(*self.backbone(self.bridge(e3, psf_blur, window))))
         return recon, det
 
 

@@ -36,16 +36,23 @@ from pdinet.model import NUM_CLASSES, PDINet  # noqa: E402
 
 HYP = dict(rec=0.01, det=1.0, lr=0.01, momentum=0.937, wd=5e-4, lrf=0.01, clip=10.0)
 # Arguments a resumed run must share with the checkpoint (the rest may change, e.g. --minutes).
-FIXED = ("head", "width", "size", "batch", "seed", "epochs", "limit")
+FIXED = ("head", "width", "size", "batch", "seed", "epochs", "limit", "init", "crop", "lr")
 
 
-def load_split(root, size, limit=None):
-    """(degraded, clean, labels) from root/degraded and root/clean, downscaled to size (W, H)."""
+def load_split(root, size, limit=None, raw16=False):
+    """(degraded, clean, labels) from root/degraded and root/clean, downscaled to size (W, H).
+    raw16: the frames as stored (16-bit, at the stored size), a quarter of the memory: for crops
+    of large frames, made float a batch at a time by `as_float`."""
     names = sorted(f for f in os.listdir(os.path.join(root, "degraded")) if f.endswith(".png"))[:limit]
     raw, gt, labels = [], [], []
     for n in names:
         def img(sub):
             im = Image.open(os.path.join(root, sub, n))
+            if raw16:
+                a = np.asarray(im, dtype=np.uint16)
+                if a.shape[::-1] != tuple(size):
+                    sys.exit(f"error: --crop needs the frames at --size {size[0]}x{size[1]}; {root}/{sub}/{n} is {a.shape[1]}x{a.shape[0]}")
+                return a
             a = np.asarray(im, dtype=np.float32) / 65535.0
             if a.shape[::-1] == tuple(size):
                 return a
@@ -56,6 +63,29 @@ def load_split(root, size, limit=None):
         rows = np.loadtxt(lp, ndmin=2) if os.path.getsize(lp) else np.zeros((0, 5))
         labels.append(rows.astype(np.float32).reshape(-1, 5))
     return np.stack(raw)[:, None], np.stack(gt)[:, None], labels
+
+
+def crop_labels(lab, oy, ox, ch, cw, fh, fw):
+    """A frame's YOLO labels (normalized to the frame) for its crop at (oy, ox) of size
+    (ch, cw), normalized to the crop: boxes clipped to it, kept when a quarter of the box's
+    area and 4 pixels of each side remain (a sliver is no object to learn)."""
+    if not len(lab):
+        return lab
+    cx, cy, w, h = lab[:, 1] * fw, lab[:, 2] * fh, lab[:, 3] * fw, lab[:, 4] * fh
+    x1, y1 = np.clip(cx - w / 2 - ox, 0, cw), np.clip(cy - h / 2 - oy, 0, ch)
+    x2, y2 = np.clip(cx + w / 2 - ox, 0, cw), np.clip(cy + h / 2 - oy, 0, ch)
+    keep = ((x2 - x1) >= 4) & ((y2 - y1) >= 4) & ((x2 - x1) * (y2 - y1) >= 0.25 * w * h)
+    out = np.stack([lab[:, 0], (x1 + x2) / 2 / cw, (y1 + y2) / 2 / ch, (x2 - x1) / cw, (y2 - y1) / ch], 1)
+    return out[keep].astype(np.float32)
+
+
+def crop_offsets(n, frame, crop, rng, step=32):
+    """Each frame's crop offset (y, x), on the coarsest head stride's grid, so a crop's
+    features are the whole frame's features at those cells (up to the crop's borders)."""
+    (fh, fw), (ch, cw) = frame, crop
+    ys = rng.integers(0, (fh - ch) // step + 1, n) * step
+    xs = rng.integers(0, (fw - cw) // step + 1, n) * step
+    return np.stack([ys, xs], 1)
 
 
 def nms(xyxy, score, cls, head):
@@ -84,7 +114,6 @@ def evaluate(model, raw, labels, psf, size, head):
                 images.append({"id": idx + 1, "width": w, "height": h})
                 xyxy, score, cls = candidates(o, head)
                 coco_entries(idx, w, h, labels[idx], xyxy, score, cls, nms(xyxy, score, cls, head), anns, dets)
-    model.train()
     return coco_map(images, anns, dets)
 
 
@@ -105,23 +134,51 @@ def save_atomic(obj, path):
     os.replace(tmp, path)
 
 
-def epoch_batches(n, batch, seed, epoch):
-    """The epoch's batches (index arrays) and per-frame flips, fixed by (seed, epoch) alone."""
+def epoch_batches(n, batch, seed, epoch, frame=None, crop=None):
+    """The epoch's batches (index arrays), per-frame flips and crop offsets (None without
+    crops), fixed by (seed, epoch) alone."""
     rng = np.random.default_rng([seed, epoch])
     perm = rng.permutation(n)
     flips = rng.random(n) < 0.5
-    return [(perm[i:i + batch], flips[i:i + batch]) for i in range(0, n, batch)]
+    if crop is None:
+        return [(perm[i:i + batch], flips[i:i + batch], None) for i in range(0, n, batch)]
+    # Drawn after the flips, so a run without crops keeps its batches.
+    offsets = crop_offsets(n, frame, crop, rng)
+    return [(perm[i:i + batch], flips[i:i + batch], offsets[i:i + batch]) for i in range(0, n, batch)]
 
 
-def targets_for(labels, idx, flip, device):
+def targets_for(labels, idx, flip, device, offsets=None, frame=None, crop=None):
     rows = []
     for k, (j, f) in enumerate(zip(idx, flip)):
         lab = labels[j].copy()
         if f:
             lab[:, 1] = 1 - lab[:, 1]
+        if offsets is not None:
+            lab = crop_labels(lab, *offsets[k], *crop, *frame)
         rows.append(np.concatenate([np.full((len(lab), 1), k, np.float32), lab], 1))
     t = np.concatenate(rows) if rows else np.zeros((0, 6), np.float32)
     return torch.from_numpy(t).to(device)
+
+
+def crops(frames, idx, flip, offsets, crop, dev):
+    """The batch's crops of 16-bit frames [N, 1, H, W] (flipped first where drawn), as float."""
+    ch, cw = crop
+    out = np.empty((len(idx), 1, ch, cw), np.float32)
+    for k, (j, f, (oy, ox)) in enumerate(zip(idx, flip, offsets)):
+        im = frames[j, 0, :, ::-1] if f else frames[j, 0]
+        out[k, 0] = im[oy:oy + ch, ox:ox + cw]
+    return torch.from_numpy(out / np.float32(65535.0)).to(dev)
+
+
+def train_mode(model, fine_tune):
+    """Training mode; when fine-tuning weights whose BatchNorms were folded into the
+    convolutions (`--init`), those keep their identity statistics (their scale and shift
+    still learn): batch statistics would undo the fold."""
+    model.train()
+    if fine_tune:
+        for m in model.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.eval()
 
 
 def pick_device(name):
@@ -149,6 +206,9 @@ def main():
     ap.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:N")
     ap.add_argument("--threads", type=int, default=0, help="CPU threads (0 = all cores)")
     ap.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    ap.add_argument("--init", metavar="ONNX", help="start from a trained PDI-Net ONNX file's weights (same head and width; any size)")
+    ap.add_argument("--crop", metavar="WxH", help="train on random crops of this size of the --size frames (the blur map cut with them)")
+    ap.add_argument("--lr", type=float, help=f"initial learning rate (default {HYP['lr']})")
     a = ap.parse_args()
     dev = pick_device(a.device)
     torch.set_num_threads(a.threads or max(1, os.cpu_count() or 1))
@@ -161,12 +221,24 @@ def main():
     os.makedirs(a.out, exist_ok=True)
     ckpt_path = os.path.join(a.out, "checkpoint.pt")
 
-    raw, gt, labels = load_split(a.data, size, a.limit)
+    crop = tuple(int(v) for v in a.crop.split("x"))[::-1] if a.crop else None  # (h, w)
+    frame = size[::-1]
+    if crop and (crop[0] > frame[0] or crop[1] > frame[1] or crop[0] % 32 or crop[1] % 32):
+        sys.exit(f"error: --crop {a.crop} must fit in --size {a.size} and be a multiple of 32 on both sides")
+    # With crops the frames stay 16-bit on the host and become float a batch at a time.
+    raw, gt, labels = load_split(a.data, size, a.limit, raw16=crop is not None)
     eraw, _, elabels = load_split(a.eval, size)
-    raw, gt, eraw = (torch.from_numpy(v).to(dev) for v in (raw, gt, eraw))
+    if crop is None:
+        raw, gt = torch.from_numpy(raw).to(dev), torch.from_numpy(gt).to(dev)
+    eraw = torch.from_numpy(eraw).to(dev)
     psf = torch.from_numpy(np.load(a.psf).astype(np.float32)).view(1, 1, 6, 8).to(dev)
     model = PDINet(head=a.head, width=a.width).to(dev)
-    opt = torch.optim.SGD(param_groups(model), lr=HYP["lr"], momentum=HYP["momentum"], nesterov=True)
+    if a.init:
+        from pdinet.export import load_onnx_weights
+
+        load_onnx_weights(model, a.init)
+    lr0 = a.lr if a.lr is not None else HYP["lr"]
+    opt = torch.optim.SGD(param_groups(model), lr=lr0, momentum=HYP["momentum"], nesterov=True)
     n = len(raw)
     nb = math.ceil(n / a.batch)
     steps, warm = a.epochs * nb, max(100, nb)
@@ -176,31 +248,36 @@ def main():
     if a.resume and os.path.exists(ckpt_path):
         ck = torch.load(ckpt_path, map_location=dev, weights_only=False)
         for k in FIXED:
-            if ck["args"][k] != getattr(a, k):
-                sys.exit(f"error: --{k} {getattr(a, k)} differs from the checkpoint's {ck['args'][k]}; start a new --out or pass the same value")
+            if ck["args"].get(k) != getattr(a, k):
+                sys.exit(f"error: --{k} {getattr(a, k)} differs from the checkpoint's {ck['args'].get(k)}; start a new --out or pass the same value")
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
         start, step, log, spent = ck["epoch"], ck["step"], ck["log"], ck["minutes"]
         print(f"resumed {ckpt_path} after epoch {start} (step {step})", flush=True)
     t0 = time.time()
     minutes = lambda: spent + (time.time() - t0) / 60
-    model.train()
+    train_mode(model, a.init)
     for ep in range(start, a.epochs):
         tot = np.zeros(4)
-        for idx, flip in epoch_batches(n, a.batch, a.seed, ep):
-            x, y = raw[idx], gt[idx]
-            fi = torch.from_numpy(np.where(flip)[0]).to(dev)
-            if len(fi):
-                x[fi], y[fi] = x[fi].flip(-1), y[fi].flip(-1)
-            targets = targets_for(labels, idx, flip, dev)
+        for idx, flip, offsets in epoch_batches(n, a.batch, a.seed, ep, frame, crop):
+            if crop is None:
+                x, y = raw[idx], gt[idx]
+                fi = torch.from_numpy(np.where(flip)[0]).to(dev)
+                if len(fi):
+                    x[fi], y[fi] = x[fi].flip(-1), y[fi].flip(-1)
+                window = None
+            else:
+                x, y = crops(raw, idx, flip, offsets, crop, dev), crops(gt, idx, flip, offsets, crop, dev)
+                window = (frame, crop, [tuple(int(v) for v in o) for o in offsets])
+            targets = targets_for(labels, idx, flip, dev, offsets, frame, crop)
             for grp in opt.param_groups:
-                grp["lr"] = HYP["lr"] * lf(step) * min(1.0, (step + 1) / warm)
-            recon, preds = model(x, psf.expand(len(idx), -1, -1, -1))
+                grp["lr"] = lr0 * lf(step) * min(1.0, (step + 1) / warm)
+            recon, preds = model(x, psf.expand(len(idx), -1, -1, -1), window)
             l_rec = F.mse_loss(recon, y)
             if a.head == "v5":
                 l_det, parts = yolo_v5_loss(preds, targets, model.detect.anchors, NUM_CLASSES)
             else:
-                l_det, parts = yolo_v8_loss(preds, targets, NUM_CLASSES, model.detect.reg_max, size)
+                l_det, parts = yolo_v8_loss(preds, targets, NUM_CLASSES, model.detect.reg_max, crop[::-1] if crop else size)
             loss = HYP["rec"] * l_rec + HYP["det"] * l_det
             opt.zero_grad()
             loss.backward()
@@ -212,6 +289,7 @@ def main():
         last = ep + 1 == a.epochs or minutes() > a.minutes
         if (ep + 1) % a.eval_every == 0 or last:
             rec["map50"], rec["map50_95"] = evaluate(model, eraw, elabels, psf, size, a.head)
+            train_mode(model, a.init)
         log.append(rec)
         print(json.dumps(rec), flush=True)
         save_atomic({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": ep + 1, "step": step,
