@@ -4,14 +4,17 @@
 //! or a scene pass (the unspecialized model, on full frames when the scene crops),
 //! a YOLOv5 or YOLOv8 head, and PyTorch (the cache's torch venv, installed on first use;
 //! `PDI_TORCH_PYTHON` points at another). Frames come from `--calib` or the physics pipeline;
-//! no labels are read. Trains on a CUDA GPU when torch sees one, else on the CPU.
+//! no labels are read. Trains on a CUDA GPU when torch sees one, else on the CPU. Frames with
+//! more than twice the pixels of 256x192 train on random 256x192 crops (`crop`, see
+//! `torch::crops`): a 640x480 model's step costs what a 256x192 one's does; the held-out
+//! judgement runs on whole frames.
 //! Guarantees: only initializer values change (nodes, names, shapes and types are checked);
 //! the PSF gate maps, upsampling kernels and decode constants stay as they were (only Conv
 //! weights and biases train; with `train: estimates` only the constants of `crop-roi`'s
 //! halos and pool corrections, every weight of the network staying as it was); the trained
 //! values are kept only when they bring the worst output group (boxes, objectness, classes)
 //! closer to the teacher on held-out frames.
-//! Reports: the loss per epoch, device, steps, frames/s and seconds, the box edges' weight,
+//! Reports: the loss per epoch, device, steps, frames/s and seconds, the crop, the box edges' weight,
 //! and the rel L2 per output group against the teacher on held-out frames before and after.
 
 use crate::calib_frames::{affordable_frames, image_feeds};

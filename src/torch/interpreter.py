@@ -415,6 +415,35 @@ class Graph(torch.nn.Module):
                 p.data = self.laid(p.data)
         return self
 
+    def crop_constants(self, strides, size):
+        """Prepares training on crops of `size` (h, w): the frame-shaped constants named in
+        `strides` (name -> the stride of their feature grid) get a buffer of the crop's cells,
+        which `set_window` fills; the buffers stay where they are, so a captured CUDA graph
+        reads each step's window."""
+        h, w = size
+        self.crop_strides, self.crop_full, self.crop_buf = dict(strides), {}, {}
+        for name, s in strides.items():
+            if name in self.key:
+                raise ValueError(f"constant {name} trains and cannot be cut to a crop")
+            full = self.consts[name]
+            self.crop_full[name] = full
+            self.crop_buf[name] = self.laid(full.new_empty(*full.shape[:-2], h // s, w // s))
+
+    def set_window(self, offset):
+        """The frame-shaped constants cut to the crop at `offset` (y, x) in pixels, or whole
+        (None)."""
+        if not getattr(self, "crop_buf", None):
+            return
+        if offset is None:
+            self.consts.update(self.crop_full)
+            return
+        y, x = offset
+        with torch.no_grad():
+            for name, buf in self.crop_buf.items():
+                s = self.crop_strides[name]
+                buf.copy_(self.crop_full[name][..., y // s:y // s + buf.shape[-2], x // s:x // s + buf.shape[-1]])
+                self.consts[name] = buf
+
     def laid(self, x):
         """A 4-D tensor in the graph's memory layout (values are unchanged)."""
         return x.contiguous(memory_format=self.layout) if x.dim() == 4 else x

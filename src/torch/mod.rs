@@ -6,6 +6,7 @@
 //! The Rust half: the shared schedule (`schedule`), the specs of what a training matches
 //! (`heads`), and the client that runs a training and takes its weights back (`train`).
 
+pub mod crops;
 pub mod heads;
 pub mod schedule;
 pub mod train;

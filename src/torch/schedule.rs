@@ -37,13 +37,18 @@ pub struct Schedule {
     /// 32% eagerly). `false`: each step eagerly. Where capture fails, training goes on
     /// eagerly and the report says why.
     pub cuda_graph: bool,
+    /// Train on random crops of the frames (`crops`): `auto` takes 256x192 windows of frames
+    /// with more than twice their pixels (a 640x480 model then trains at a 256x192 step's
+    /// cost; the frame-shaped constants are cut with each window), `none` whole frames, or
+    /// `WxH`. Held-out frames are judged whole.
+    pub crop: super::crops::Crop,
 }
 
 impl Schedule {
     /// A pass's defaults: `steps` of `batch` at `lr`, no warm-up or time cap, every core, one
     /// process, CUDA (captured) when torch sees a GPU.
     pub fn new(steps: usize, lr: f64, batch: usize) -> Schedule {
-        Schedule { steps, warmup: 0, minutes: None, threads: 0, lr, batch, device: String::new(), devices: 1, cuda_graph: true }
+        Schedule { steps, warmup: 0, minutes: None, threads: 0, lr, batch, device: String::new(), devices: 1, cuda_graph: true, crop: super::crops::Crop::Auto }
     }
 
     /// The ranges, checked when the recipe loads; `within` prefixes the message where the

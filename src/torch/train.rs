@@ -58,6 +58,9 @@ pub struct Outcome {
     /// On one GPU: whether the step was captured as a CUDA graph, or why not.
     #[serde(default)]
     pub cuda_graph: Option<serde_json::Value>,
+    /// The crops trained on (`WxH`), or None for whole frames.
+    #[serde(default)]
+    pub crop: Option<String>,
     pub device: String,
     pub torch: String,
 }
@@ -151,12 +154,13 @@ pub fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Tensor], 
     crate::onnx::save(teacher, &dir.join("teacher.onnx"))?;
     write_frames(frames, &dir.join("frames.npy"))?;
     write_frames(held_out, &dir.join("held_out.npy"))?;
+    let crop = crop_plan(student, teacher, frames, o, &job)?;
     let outputs_to = dir.join("outputs");
     std::fs::create_dir(&outputs_to)?;
     let mut config = serde_json::json!({
         "student": dir.join("student.onnx"), "teacher": dir.join("teacher.onnx"), "out": dir.join("trained.onnx"),
         "frames": dir.join("frames.npy"), "held_out": dir.join("held_out.npy"), "heads": job.heads, "features": job.features,
-        "window": o.window, "trainable": o.trainable, "steps": s.steps, "warmup": s.warmup, "minutes": s.minutes, "threads": (s.threads() / s.devices.max(1)).max(1), "lr": s.lr, "batch": s.batch, "seed": o.seed, "cuda_graph": s.cuda_graph,
+        "window": o.window, "crop": crop, "trainable": o.trainable, "steps": s.steps, "warmup": s.warmup, "minutes": s.minutes, "threads": (s.threads() / s.devices.max(1)).max(1), "lr": s.lr, "batch": s.batch, "seed": o.seed, "cuda_graph": s.cuda_graph,
         "device": if s.device.is_empty() { serde_json::Value::Null } else { s.device.clone().into() },
         "outputs_to": if job.outputs { serde_json::json!(outputs_to) } else { serde_json::Value::Null },
     });
@@ -188,6 +192,26 @@ pub fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Tensor], 
     let n_outputs = student.graph.as_ref().map_or(0, |g| g.output.len());
     let outputs = if job.outputs { (0..n_outputs).map(|k| read_tensor(&outputs_to.join(format!("out{k}.npy")))).collect::<Result<_>>()? } else { Vec::new() };
     Ok((outcome, outputs))
+}
+
+/// How the job crops its frames (`crops`), if it does: a scene's window already crops the
+/// student, so `auto` leaves it whole and a crop size is refused beside it.
+fn crop_plan(student: &ModelProto, teacher: &ModelProto, frames: &[Tensor], o: &Training, job: &Job) -> Result<Option<super::crops::Plan>> {
+    let Some(dims) = frames.first().map(|f| &f.shape) else { return Ok(None) };
+    if dims.len() != 4 {
+        return Ok(None);
+    }
+    if o.window.is_some() {
+        if let super::crops::Crop::Size(..) = o.schedule.crop {
+            bail!("{}: crop {} cannot combine with a scene's roi (the student already sees a window); set crop: auto or none", job.label, o.schedule.crop);
+        }
+        return Ok(None);
+    }
+    let names = |key: &str| -> Vec<String> {
+        job.heads.iter().map(|h| h.get(key).and_then(|v| v.as_str()).or(h["value"].as_str()).unwrap_or_default().to_string())
+            .chain(job.features.iter().filter_map(|f| f["value"].as_str().map(String::from))).collect()
+    };
+    super::crops::plan(o.schedule.crop, (student, &names("student_value")), (teacher, &names("value")), (dims[2], dims[3])).map_err(|e| anyhow!("{}: {e}", job.label))
 }
 
 fn read_tensor(path: &Path) -> Result<Tensor> {

@@ -115,10 +115,37 @@ def total_loss(ss, ts, heads, features=()):
     return total
 
 
-def ort_teacher(path, names, threads):
+class OrtTeacher:
     """On the CPU the teacher runs on ONNX Runtime (twice as fast as torch there): a callable
-    like Graph's, returning the named values as tensors."""
+    like Graph's, returning the named values as tensors. With crops its frame-shaped
+    constants become inputs, fed cut to each step's window (`set_window`, as Graph's)."""
+
+    def __init__(self, path, names, threads, strides=None):
+        self.strides, self.offset = dict(strides or {}), None
+        self.sess, self.full = ort_session(path, names, threads, self.strides)
+        self.image = [i.name for i in self.sess.get_inputs() if i.name not in self.full][0]
+
+    def set_window(self, offset):
+        self.offset = offset
+
+    def __call__(self, x, wanted):
+        feeds = {self.image: x.cpu().contiguous().numpy()}
+        for name, full in self.full.items():
+            if self.offset is None:
+                feeds[name] = full
+            else:
+                s, (y, x0) = self.strides[name], self.offset
+                h, w = x.shape[-2] // s, x.shape[-1] // s
+                feeds[name] = np.ascontiguousarray(full[..., y // s:y // s + h, x0 // s:x0 // s + w])
+        return [torch.from_numpy(v) for v in self.sess.run(wanted, feeds)]
+
+
+def ort_session(path, names, threads, strides):
+    """ONNX Runtime's session of the cone of `names` for any batch size; with `strides`
+    (frame-shaped constants) for any frame size too, those constants made inputs (returned
+    by name, whole)."""
     import onnxruntime as ort
+    from onnx import numpy_helper
 
     m = onnx.load(path)
     # Only the head values, for any batch size (the decode after them fixes a batch of 1).
@@ -130,6 +157,14 @@ def ort_teacher(path, names, threads):
     m.graph.node.extend(keep)
     for i in m.graph.input:
         i.type.tensor_type.shape.dim[0].dim_param = "batch"
+        if strides:
+            i.type.tensor_type.shape.dim[2].dim_param, i.type.tensor_type.shape.dim[3].dim_param = "height", "width"
+    full = {}
+    for t in [t for t in m.graph.initializer if t.name in strides]:
+        full[t.name] = numpy_helper.to_array(t).copy()
+        m.graph.initializer.remove(t)
+        dims = list(t.dims[:-2]) + [f"height/{strides[t.name]}", f"width/{strides[t.name]}"]
+        m.graph.input.append(onnx.helper.make_tensor_value_info(t.name, t.data_type, dims))
     so = ort.SessionOptions()
     so.log_severity_level = 3  # the cut leaves the decode's constants unused: not worth a warning
     # ORT's workers spin after each run by default and take the cores from the torch step that
@@ -139,9 +174,7 @@ def ort_teacher(path, names, threads):
     # A fixed thread count: the teacher's sums come out the same on every run.
     so.intra_op_num_threads = threads
     so.inter_op_num_threads = 1
-    sess = ort.InferenceSession(m.SerializeToString(), so, providers=["CPUExecutionProvider"])
-    image = [i.name for i in sess.get_inputs()][0]
-    return lambda x, wanted: [torch.from_numpy(v) for v in sess.run(wanted, {image: x.cpu().numpy()})]
+    return ort.InferenceSession(m.SerializeToString(), so, providers=["CPUExecutionProvider"]), full
 
 
 def crop(x, window):
@@ -158,6 +191,17 @@ def cropped_teacher(teacher, window):
     if window is None:
         return teacher
     return lambda x, wanted: [crop(v, window) for v in teacher(x, wanted)]
+
+
+def random_crop(x, crops, gen, models):
+    """A window of the batch's frames (one per step, on the models' coarsest grid, drawn on
+    the CPU generator), with each model's frame-shaped constants cut to it."""
+    step, h, w = crops["step"], crops["h"], crops["w"]
+    y = int(torch.randint(0, (x.shape[-2] - h) // step + 1, (1,), generator=gen)) * step
+    x0 = int(torch.randint(0, (x.shape[-1] - w) // step + 1, (1,), generator=gen)) * step
+    for m in models:
+        m.set_window((y, x0))
+    return x[..., y:y + h, x0:x0 + w].contiguous()
 
 
 def augment(x, gen):
@@ -211,11 +255,20 @@ def train(cfg):
     names = [h["value"] for h in heads] + [f["value"] for f in features]
     # The student's copy of a value where it differs (a quantized value's dequantized copy).
     student_names = [h.get("student_value") or h["value"] for h in heads] + [f["value"] for f in features]
-    teacher = ort_teacher(cfg["teacher"], names, torch.get_num_threads()) if dev.type == "cpu" else Graph(onnx.load(cfg["teacher"]), trainable=False).to_device(dev).eval()
+    crops = cfg.get("crop")
+    if dev.type == "cpu":
+        teacher = OrtTeacher(cfg["teacher"], names, torch.get_num_threads(), crops["teacher"] if crops else None)
+    else:
+        teacher = Graph(onnx.load(cfg["teacher"]), trainable=False).to_device(dev).eval()
+        if crops:
+            teacher.crop_constants(crops["teacher"], (crops["h"], crops["w"]))
+    if crops:
+        student.crop_constants(crops["student"], (crops["h"], crops["w"]))
     window = cfg.get("window")
     frames = torch.from_numpy(np.load(cfg["frames"])).to(dev)
     if window is not None:
         window = dict(window, frame_h=frames.shape[-2], frame_w=frames.shape[-1])
+    teacher_graph = teacher  # set_window's owner (cropped_teacher wraps it)
     teacher = cropped_teacher(teacher, window)
     student_in = (lambda x: crop(x, window))
     held = torch.from_numpy(np.load(cfg["held_out"])).to(dev)
@@ -223,6 +276,8 @@ def train(cfg):
     per_epoch = max(1, n // batch)
 
     def held_loss():
+        student.set_window(None)
+        teacher_graph.set_window(None)
         with torch.no_grad():
             tot = 0.0
             for i in range(0, len(held), batch):
@@ -277,6 +332,8 @@ def train(cfg):
             # Every rank draws the whole batch and its augmentation (so the generator stays
             # in step with one process's), then trains on its share.
             x = augment(frames[perm[i * batch:(i + 1) * batch]], agen)
+            if crops:
+                x = random_crop(x, crops, gen, (student, teacher_graph))
             if WORLD > 1:
                 x = x.chunk(WORLD)[RANK]
             # Linear warm-up, then cosine decay to 2% over the remaining steps.
@@ -308,7 +365,7 @@ def train(cfg):
     emit({"event": "done", "held_out_loss_before": before, "held_out_loss_after": after, "loss_per_epoch": curve, "epochs": epoch,
           "steps": step, "steps_planned": steps, "capped": capped, "seconds": seconds, "frames_per_second": seen / max(seconds, 1e-9),
           "steps_per_second": step / max(seconds, 1e-9), "gpu_busy_share": gpu_busy, "device": str(dev), "threads": torch.get_num_threads(), "ranks": WORLD, "torch": torch.__version__,
-          "batch": batch, "cuda_graph": run_step.report() if graphed else None})
+          "batch": batch, "cuda_graph": run_step.report() if graphed else None, "crop": f"{crops['w']}x{crops['h']}" if crops else None})
     if WORLD > 1:
         dist.barrier()
         dist.destroy_process_group()

@@ -262,6 +262,7 @@ fn the_full_size_model_recovers_end_to_end_on_the_cpu() {
     let r = &report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == "recover").unwrap()["details"];
     println!("{}", serde_json::to_string_pretty(&r["training"]).unwrap());
     assert_eq!(r["training"]["steps"], 2, "{r}");
+    assert_eq!(r["training"]["crop"], "256x192", "640x480 frames train on crops: {r}");
     assert!(r["training"]["frames_per_second"].as_f64().unwrap() > 0.0, "{r}");
     let frames = r["frames"].as_u64().unwrap();
     // 8 asked for plus the draw that holds out a quarter for the rule: all in memory, far
@@ -275,4 +276,58 @@ fn the_full_size_model_recovers_end_to_end_on_the_cpu() {
     assert_eq!(r["kept"], after < before, "kept must say whether the worst group improved ({before} -> {after}): {r}");
     let macs = |k: &str| report[k]["macs"].as_f64().unwrap();
     assert!(macs("after") < 0.5 * macs("before"), "pruned: {} of {} MACs", macs("after"), macs("before"));
+}
+
+/// Training on crops of 640x480 frames: the plan cuts exactly the three folded PSF gate maps
+/// (one value per cell of the stride-4 grid) with each window, on the coarsest head grid;
+/// whole frames at 256x192 or with `crop: none`. A model that fixes a shape from the frame's
+/// size where the training reads (a Reshape before a head) is refused in one line, and so
+/// are crop sizes off the grid (when the recipe loads) or larger than the frames.
+#[test]
+fn crops_cut_the_gate_maps_and_refuse_what_cannot_follow() {
+    use pdi_compile::torch::crops::{plan, Crop};
+    use pdi_compile::torch::heads::{feature_specs, head_specs};
+    let dir = tempfile::tempdir().unwrap();
+    let export = dir.path().join("e");
+    let python = pdi_compile::pyenv::torch_python().unwrap();
+    let out = std::process::Command::new(python)
+        .args(["models/pdinet/export.py", "--out", export.to_str().unwrap(), "--weights-from", "models/trained/pdinet_v5_tiny_trained.onnx", "--size", "640x480"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let compiled = dir.path().join("c");
+    compile(export.join("pdinet_v5_tiny_trained_640x480.onnx").to_str().unwrap(), "passes/detect-lossless.yaml", &compiled);
+    let m = load(&compiled.join("model.onnx"));
+    let values: Vec<String> = head_specs(&m).unwrap().iter().chain(feature_specs(&m, &Default::default()).unwrap().iter()).map(|s| s["value"].as_str().unwrap().to_string()).collect();
+    let p = plan(Crop::Auto, (&m, &values), (&m, &values), (480, 640)).unwrap().expect("640x480 frames are cropped");
+    assert_eq!((p.h, p.w, p.step), (192, 256, 32));
+    assert_eq!(p.student.len(), 3, "{:?}", p.student);
+    assert!(p.student.values().all(|&s| s == 4) && p.student == p.teacher, "{p:?}");
+    assert!(plan(Crop::Off, (&m, &values), (&m, &values), (480, 640)).unwrap().is_none());
+    assert_eq!(plan(Crop::Size(320, 256), (&m, &values), (&m, &values), (480, 640)).unwrap().map(|p| (p.h, p.w)), Some((256, 320)));
+
+    // A Reshape to the value's own shape after the first convolution: same values, but a
+    // shape fixed from 640x480.
+    let mut edited = m.clone();
+    let g = edited.graph.as_mut().unwrap();
+    let first = g.node.iter().position(|n| n.op_type == "Conv").unwrap();
+    let value = g.node[first].output[0].clone();
+    let graph = pdi_compile::ir::Graph::build(m.graph.as_ref().unwrap()).unwrap();
+    let shape: Vec<i64> = pdi_compile::ir::infer(&graph).shape(&value).unwrap().iter().map(|&d| d as i64).collect();
+    g.node[first].output[0] = format!("{value}_pre");
+    g.initializer.push(pdi_compile::onnx::tensor_proto::from_tensor("fixed_shape", &Tensor::new(vec![4], pdi_compile::tensor::TensorData::I64(shape))));
+    let reshape = pdi_compile::onnx::proto::NodeProto { name: "fixed".into(), op_type: "Reshape".into(), input: vec![format!("{value}_pre"), "fixed_shape".into()], output: vec![value], ..Default::default() };
+    g.node.insert(first + 1, reshape);
+    let err = plan(Crop::Auto, (&edited, &values), (&m, &values), (480, 640)).unwrap_err().to_string();
+    assert!(err.contains("cannot train on crops: node 'fixed' (Reshape) fixes its output's shape") && !err.contains('\n'), "{err}");
+
+    for (setting, needle) in [("crop: 250x192", "both sides must be positive multiples of 32"), ("crop: 320x256", "crop 320x256 is larger than the 256x192 frames")] {
+        let recipe = dir.path().join("r.yaml");
+        std::fs::write(&recipe, format!("name: r\npasses: [{LOSSLESS}, {{prune: {{ratio: 0.5, compensate: none}}}}, {{recover: {{steps: 2, batch: 2, frames: 8, {setting}}}}}, cleanup]\n")).unwrap();
+        let out = dir.path().join("o");
+        let r = cli(&["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap()]);
+        assert_eq!(r.code, 2, "{setting}: {}", r.stderr);
+        assert!(r.stderr.contains(needle) && r.stderr.trim().lines().count() == 1, "{setting}: {}", r.stderr);
+        assert!(!out.join("model.onnx").exists(), "{setting}: nothing written");
+    }
 }
