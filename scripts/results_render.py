@@ -66,16 +66,23 @@ def int8(f):
                   for m in f["models"]])
 
 
-def demo(f):
+def variants(vs):
     rows = []
-    for v in f["variants"]:
+    for v in vs:
         ms = lambda k: "-" if v[k] is None else f"{v[k]:.2f}"
         agree = " / ".join("-" if v[k] is None else f"{v[k]:.3f}" for k in ("agreement", "agreement_tract"))
         rows.append([v["name"], size(v["bytes"]), megs(v["macs"]), ms("ort_ms"), ms("tract_ms"), f4(v["map_labels"]),
                      "1.000" if v["name"] == "original" else agree])
-    rec = "; ".join(f"{r['target']}: {r['variant'] or 'none'}" for r in f["recommended"])
-    return table(["variant", "size", "MACs", "ORT ms", "tract ms", "mAP (labels)", "agreement ORT / tract"], rows) + \
-        ["", f"Recommended: {rec}. Recovery: {f['recover_steps']} steps; the demo took {dur(f['seconds'])}."]
+    return table(["variant", "size", "MACs", "ORT ms", "tract ms", "mAP (labels)", "agreement ORT / tract"], rows)
+
+
+def recommended(f):
+    return "; ".join(f"{r['target']}: {r['variant'] or 'none'}" for r in f["recommended"])
+
+
+def demo(f):
+    return variants(f["variants"]) + \
+        ["", f"Recommended: {recommended(f)}. Recovery: {f['recover_steps']} steps; the demo took {dur(f['seconds'])}."]
 
 
 def run(f):
@@ -150,8 +157,36 @@ def pruned(f):
 
 
 def camera(f):
-    return table(["model", "mAP@0.5:0.95 at 256×192", "at 640×480", "mAP@0.5 at 640×480", "frames"],
-                 [[m["model"], f4(m["map_256"]), f4(m["map_640"]), f4(m["map50_640"]), m["frames"]] for m in f["models"]])
+    rows = []
+    for m in f["models"]:
+        t = m["tuned"]
+        rows.append([m["model"], f4(m["map_256"]), f"{f4(m['map_640'])} ({f4(m['map50_640'])})",
+                     f"{f4(t['seed2'])} ({f4(t['seed2_50'])})", f4(t["card"]),
+                     f"{f4(t['seed3'])} ({f4(t['seed3_50'])}), {t['seed3'] - t['card']:+.4f}"])
+    t = f["models"][0]["tuned"]
+    return table(["model", "at 256×192", "256×192 weights at 640×480", "fine-tuned at 640×480", "its card",
+                  "another seed's scenes, against the card"], rows) + \
+        ["", f"mAP@0.5:0.95 (mAP@0.5); {f['models'][0]['frames']} frames each. Fine-tuned: {t['epochs']} epochs on "
+             f"{t['crop']} crops of 640×480 frames ({t['minutes']:.0f} min on {t['device']}, `models/finetune-640.sh`)."]
+
+
+def pruned_640(f):
+    rc, small = f["recover"], f["at_256"]
+    lines = table(["model", "MACs", "recovery", "mAP original", "pruned f32", "compile", "at 256×192"],
+                  [[f["model"], f"{f['macs_ratio']:.2f}×",
+                    f"{rc['steps']} steps on {rc['crop'] or 'whole'} crops in {dur(rc['seconds'])} ({rc['frames_per_second']:.1f} frames/s)",
+                    f4(f["map_original"]), f"{f4(f['map_f32'])} ({f['kept_f32']:.3f}×)", dur(f["compile_seconds"]),
+                    "-" if not small else f"{dur(small['compile_seconds'])} ({f['compile_seconds'] / small['compile_seconds']:.2f}× here)"]])
+    lines += ["", f"The same recipe with {f['short'][0]['steps']} recovery steps, on crops and on whole frames:", ""]
+    lines += table(["frames", "recovery", "frames/s", "pruned f32 mAP", "kept"],
+                   [[s["crop"] if s["crop"] != "none" else "whole 640×480", dur(s["seconds"]), f"{s['frames_per_second']:.1f}",
+                     f4(s["map"]), f"{s['kept']:.3f}×"] for s in f["short"]])
+    return lines
+
+
+def ship_640(f):
+    return [f"`ship` on the {f['model']}, {f['recover_steps']} recovery steps, on the held-out scenes at 640×480:", ""] + \
+        variants(f["variants"]) + ["", f"Recommended: {recommended(f)}."]
 
 
 def latency(f):
@@ -176,7 +211,8 @@ def latency(f):
     return out
 
 
-BLOCKS = {"lossless": lossless, "latency-640": latency, "camera-640": camera, "int8": int8, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
+BLOCKS = {"lossless": lossless, "latency-640": latency, "camera-640": camera, "pruned-640": pruned_640,
+          "ship-640-v5": ship_640, "ship-640-v8": ship_640, "int8": int8, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
           "rebuild": rebuild, "recipe-bytes": recipe_bytes,
           "broken-builds": broken_builds, "suite": suite}
 
@@ -235,9 +271,26 @@ def readme_rows(recs):
             + "; keeps " + " / ".join(f"{f['kept_f32']:.3f}×" for f in fs), gpu[0]["name"], "pruning.md")
     if "camera-640" in recs:
         ms = recs["camera-640"]["figures"]["models"]
-        row("the trained width-0.25 weights at 640×480 (no training at that size)",
-            "mAP " + "; ".join(f"{m['model']}: {f4(m['map_640'])} (at 256×192: {f4(m['map_256'])})" for m in ms)
-            + " on the same scenes", "camera-640", "camera.md")
+        row("the width-0.25 models fine-tuned at the camera's 640×480 (on 256×192 crops)",
+            "mAP " + "; ".join(f"{m['model']}: {f4(m['tuned']['seed2'])} (the 256×192 weights there: {f4(m['map_640'])})" for m in ms)
+            + " on the held-out scenes at 640×480", "camera-640", "camera.md")
+    if "pruned-640" in recs:
+        f = recs["pruned-640"]["figures"]
+        row("`detect-pruned-f32` as shipped at 640×480 (v5 w0.25, recovery on crops, CPU)",
+            f"{f['macs_ratio']:.0%} of the MACs; keeps {f['kept_f32']:.3f}× ({f['map_f32']:.3f} of {f['map_original']:.3f}); "
+            f"compile {dur(f['compile_seconds'])}" + ("" if not f["at_256"] else f" ({f['compile_seconds'] / f['at_256']['compile_seconds']:.2f}× the 256×192 model's)"),
+            "pruned-640", "camera.md")
+    for name in ("ship-640-v5", "ship-640-v8"):
+        if name in recs:
+            f = recs[name]["figures"]
+            v = {x["name"]: x for x in f["variants"]}
+            o = v["original"]
+            rec = {r["target"]: r["variant"] for r in f["recommended"]}
+            row(f"`ship` at 640×480 ({f['model'].split(' at ')[0]}, {f['recover_steps']} recovery steps)",
+                "; ".join(f"{n} {x['ort_ms']:.1f} ms ORT / {x['tract_ms']:.1f} ms tract, mAP {f4(x['map_labels'])}"
+                          for n, x in v.items() if n != "original" and x.get("ort_ms") is not None)
+                + f" (original {o['ort_ms']:.1f} ms, {f4(o['map_labels'])}); recommended for ONNX Runtime: "
+                  f"{rec.get('onnxruntime') or 'none'}", name, "camera.md")
     if "latency-640" in recs:
         by = {(r["variant"], r["engine"]): r for r in recs["latency-640"]["figures"]["rows"]}
         o = lambda v: by[(v, "ort")]["ratio"]

@@ -8,7 +8,7 @@ use std::process::Command;
 
 /// The toolkit venv's requirements (one file, which `scripts/setup-toolkit` installs too).
 const REQUIREMENTS: &str = include_str!("toolkit-requirements.txt");
-const STAMP: &str = ".installed-rknn-toolkit2-2.5.0";
+const STAMP: &str = ".installed-rknn-toolkit2-2.5.0-train";
 
 /// The pins of [`REQUIREMENTS`], comments and blank lines left out.
 fn requirements() -> impl Iterator<Item = &'static str> {
@@ -25,7 +25,7 @@ pub fn toolkit_python() -> Result<PathBuf> {
     if venv.join(STAMP).exists() {
         return Ok(python);
     }
-    let imports = |p: &Path| Command::new(p).args(["-c", "import rknn.api"]).output().is_ok_and(|o| o.status.success());
+    let imports = |p: &Path| Command::new(p).args(["-c", "import rknn.api, PIL, pycocotools"]).output().is_ok_and(|o| o.status.success());
     if !(python.exists() && imports(&python)) {
         eprintln!("installing rknn-toolkit2 2.5.0 and torch into {} (first use: ~6 min, ~6 GB)", venv.display());
         let base = std::env::var_os("PDI_RKNN_BASE_PYTHON").map(PathBuf::from).unwrap_or_else(|| PathBuf::from("python3.11"));
@@ -36,7 +36,9 @@ pub fn toolkit_python() -> Result<PathBuf> {
             }
             Ok(())
         };
-        run(Command::new(&base).args(["-m", "venv"]).arg(&venv), "creating the rknn-toolkit2 venv (it needs Python 3.11: install python3.11 or set PDI_RKNN_BASE_PYTHON)")?;
+        if !python.exists() {
+            run(Command::new(&base).args(["-m", "venv"]).arg(&venv), "creating the rknn-toolkit2 venv (it needs Python 3.11: install python3.11 or set PDI_RKNN_BASE_PYTHON)")?;
+        }
         let started = std::time::Instant::now();
         let mut pip = Command::new(venv.join("bin/pip")).args(["install", "-q", "--disable-pip-version-check"]).args(requirements()).spawn().context("pip install rknn-toolkit2==2.5.0: cannot start it")?;
         // pip -q is silent for minutes: say that it is still working.

@@ -37,7 +37,7 @@ pub struct Schedule {
     /// 32% eagerly). `false`: each step eagerly. Where capture fails, training goes on
     /// eagerly and the report says why.
     pub cuda_graph: bool,
-    /// Train on random crops of the frames (`crops`): `auto` takes 256x192 windows of frames
+    /// Train on random crops of the frames: `auto` takes 256x192 windows of frames
     /// with more than twice their pixels (a 640x480 model then trains at a 256x192 step's
     /// cost; the frame-shaped constants are cut with each window), `none` whole frames, or
     /// `WxH`. Held-out frames are judged whole.
