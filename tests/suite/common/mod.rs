@@ -88,20 +88,26 @@ pub fn eval_set(dir: &Path) -> PathBuf {
 /// Generated once per test process and shared: the tests only read it (`_dir` is where each
 /// test writes its own files).
 pub fn eval_frames(_dir: &Path, n: usize) -> PathBuf {
+    eval_frames_at(n, "256x192")
+}
+
+/// The held-out scenes' first `n` frames at `size` (`256x192`, or the sensor's `640x480`).
+pub fn eval_frames_at(n: usize, size: &str) -> PathBuf {
     static ROOT: std::sync::OnceLock<tempfile::TempDir> = std::sync::OnceLock::new();
-    static MADE: std::sync::Mutex<Vec<usize>> = std::sync::Mutex::new(Vec::new());
+    static MADE: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
     // Under target/tmp: a static is never dropped, so this folder outlives the process there.
-    let root = ROOT.get_or_init(|| tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).unwrap()).path().join(n.to_string());
+    let key = if size == "256x192" { n.to_string() } else { format!("{n}-{size}") };
+    let root = ROOT.get_or_init(|| tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).unwrap()).path().join(&key);
     // Held while generating: a second test wanting the same set waits instead of racing.
     let mut made = MADE.lock().unwrap_or_else(|e| e.into_inner());
-    if !made.contains(&n) {
+    if !made.contains(&key) {
         let psf = root.join("psf");
         let r = cli(&["psf", "simulate", "--lens", "calib/lens_single_lwir.yaml", "-o", psf.to_str().unwrap()]);
         assert_eq!(r.code, 0, "{}", r.stderr);
         let set = root.join("eval");
-        let r = cli(&["dataset", set.to_str().unwrap(), "--psf", psf.to_str().unwrap(), "--n", &n.to_string(), "--q", "90", "--seed", "2", "--min-box", "16", "--out-size", "256x192"]);
+        let r = cli(&["dataset", set.to_str().unwrap(), "--psf", psf.to_str().unwrap(), "--n", &n.to_string(), "--q", "90", "--seed", "2", "--min-box", "16", "--out-size", size]);
         assert_eq!(r.code, 0, "{}", r.stderr);
-        made.push(n);
+        made.push(key);
     }
     root.join("eval").join("degraded")
 }
