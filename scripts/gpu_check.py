@@ -2,8 +2,9 @@
 fails or runs out of time keeps the others): the worker's op check on CUDA; its frames/s,
 steps/s and GPU busy share recovering the pruned width-0.25 v5 at 256x192 (each step eagerly,
 then captured as a CUDA graph, at batch 32 and 128) and the full-size v5 at 640x480 (captured
-and eager); and, with 2 GPUs or more, DDP against one process. Each recovery's time is capped,
-so the whole check stays within 8 minutes. Figures of 2026-11-27 on an H200:
+and eager); train.py at full width and 640x480 in float32 and bf16; and, with 2 GPUs or more, DDP against
+one process. Each part's time is capped (the whole check within about 10 minutes);
+PDI_GPU_CHECK_ONLY=NAME,... runs the named parts alone. Figures of 2026-11-27 on an H200:
 docs/results/pruning.md, "Recovery on a GPU"."""
 import datetime
 import json
@@ -22,6 +23,7 @@ W025 = "models/trained/pdinet_v5_w0.25_trained.onnx"
 # PDI_GPU_CHECK_DRY=1 runs every part on the CPU with 2 steps of tiny batches: the plumbing only.
 DRY = bool(os.environ.get("PDI_GPU_CHECK_DRY"))
 DEVICE = "cpu" if DRY else "cuda"
+ONLY = [p for p in os.environ.get("PDI_GPU_CHECK_ONLY", "").split(",") if p]
 out_path = sys.argv[1]
 work = tempfile.mkdtemp(prefix="gpu-check-")
 result = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), "torch": torch.__version__,
@@ -61,8 +63,12 @@ def training(report):
 
 
 def part(name, budget):
-    """Runs the decorated part now, recording its result, its error and its seconds."""
+    """Runs the decorated part now, recording its result, its error and its seconds (only the
+    parts PDI_GPU_CHECK_ONLY names, comma-separated, when it is set: a short lease spent on
+    what is not measured yet)."""
     def run(fn):
+        if ONLY and name not in ONLY:
+            return
         t = time.time()
         try:
             result["parts"][name] = fn(budget)
@@ -123,6 +129,29 @@ for name, graph in (("recover_640x480_full_size_graph_b16", True), ("recover_640
     def _(budget, graph=graph, name=name):
         report, _ = compile_recipe(FULL["model"], [PRUNE, recover(400, 16, 256, graph=graph, minutes=0.75), "cleanup"], name, budget)
         return training(report)
+
+
+# train.py at full width and 640x480 (batch 32, 256 frames, 2 epochs: the second is timed),
+# float32 against bf16 autocast: frames/s and the GPU's busy share from its log.
+for name, amp in (("train_640x480_full_width_f32", "off"), ("train_640x480_full_width_bf16", "bf16")):
+    @part(name, 100)
+    def _(budget, amp=amp, name=name):
+        data = os.path.join(work, "train-640")
+        if not os.path.exists(os.path.join(data, "dataset.yaml")):
+            psf = os.path.join(work, "psf")
+            subprocess.run([BIN, "psf", "simulate", "--lens", "calib/lens_single_lwir.yaml", "-o", psf], check=True, capture_output=True)
+            subprocess.run([BIN, "dataset", data, "--psf", psf, "--n", "8" if DRY else "256", "--q", "90", "--seed", "1", "--min-box", "16", "--out-size", "640x480"],
+                           check=True, capture_output=True)
+        out = os.path.join(work, name)
+        epochs, batch, n = ("1", "2", "4") if DRY else ("2", "32", "256")
+        p = subprocess.run([sys.executable, "models/pdinet/train.py", "--head", "v5", "--width", "0.0625" if DRY else "1.0", "--size", "640x480",
+                            "--data", data, "--eval", data, "--limit", n, "--epochs", epochs, "--batch", batch, "--eval-every", "100",
+                            "--amp", amp, "--device", DEVICE, "--psf", PSF, "--out", out],
+                           capture_output=True, text=True, timeout=budget)
+        if p.returncode != 0:
+            raise RuntimeError(p.stderr.strip().splitlines()[-1] if p.stderr.strip() else f"exit {p.returncode}")
+        log = [json.loads(l) for l in p.stdout.splitlines() if l.startswith("{")]
+        return {"epochs": log, "frames_per_second": log[-1].get("frames_per_second"), "gpu_busy_share": log[-1].get("gpu_busy_share")}
 
 
 @part("ddp_against_one_process", 150)

@@ -181,6 +181,39 @@ def train_mode(model, fine_tune):
                 m.eval()
 
 
+class BusySampler:
+    """On a GPU, the share of an epoch it was busy: NVML's utilization sampled every 0.1 s in
+    a thread (None on the CPU or without NVML)."""
+
+    def __init__(self, dev):
+        self.samples, self.running, self.thread = [], True, None
+        if dev.type != "cuda":
+            return
+        try:
+            import pynvml
+            import threading
+
+            pynvml.nvmlInit()
+            handle = pynvml.nvmlDeviceGetHandleByIndex(dev.index or 0)
+        except Exception:
+            return
+
+        def sample():
+            while self.running:
+                self.samples.append(pynvml.nvmlDeviceGetUtilizationRates(handle).gpu / 100.0)
+                time.sleep(0.1)
+
+        self.thread = threading.Thread(target=sample, daemon=True)
+        self.thread.start()
+
+    def stop(self):
+        self.running = False
+        if self.thread is None or not self.samples:
+            return None
+        self.thread.join()
+        return sum(self.samples) / len(self.samples)
+
+
 def pick_device(name):
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -209,12 +242,19 @@ def main():
     ap.add_argument("--init", metavar="ONNX", help="start from a trained PDI-Net ONNX file's weights (same head and width; any size)")
     ap.add_argument("--crop", metavar="WxH", help="train on random crops of this size of the --size frames (the blur map cut with them)")
     ap.add_argument("--lr", type=float, help=f"initial learning rate (default {HYP['lr']})")
+    ap.add_argument("--amp", choices=["auto", "off", "bf16"], default="auto",
+                    help="bf16 autocast of the forward (auto: on CUDA, off on the CPU; losses stay float32)")
     a = ap.parse_args()
     dev = pick_device(a.device)
     torch.set_num_threads(a.threads or max(1, os.cpu_count() or 1))
-    # Full-precision float on the GPU too, so CPU and GPU runs differ only by float noise.
+    # Full-precision float on the GPU too (unless --amp), so CPU and GPU runs differ only by
+    # float noise.
     torch.backends.cuda.matmul.allow_tf32 = False
     torch.backends.cudnn.allow_tf32 = False
+    amp = (a.amp == "bf16") or (a.amp == "auto" and dev.type == "cuda")
+    if dev.type == "cuda":
+        # cuDNN's fastest kernels for these shapes (a GPU run is not bit-reproducible anyway).
+        torch.backends.cudnn.benchmark = True
     torch.manual_seed(a.seed)
     size = tuple(int(v) for v in a.size.split("x"))
     stem = a.name or f"pdinet_{a.head}_w{a.width:g}"
@@ -233,6 +273,9 @@ def main():
     eraw = torch.from_numpy(eraw).to(dev)
     psf = torch.from_numpy(np.load(a.psf).astype(np.float32)).view(1, 1, 6, 8).to(dev)
     model = PDINet(head=a.head, width=a.width).to(dev)
+    # On a GPU, NHWC: what its convolution kernels (and bf16's tensor cores) read without a
+    # transpose around each layer.
+    layout = torch.channels_last if dev.type == "cuda" else torch.contiguous_format
     if a.init:
         from pdinet.export import load_onnx_weights
 
@@ -254,11 +297,13 @@ def main():
         opt.load_state_dict(ck["optimizer"])
         start, step, log, spent = ck["epoch"], ck["step"], ck["log"], ck["minutes"]
         print(f"resumed {ckpt_path} after epoch {start} (step {step})", flush=True)
+    model = model.to(memory_format=layout)
     t0 = time.time()
     minutes = lambda: spent + (time.time() - t0) / 60
     train_mode(model, a.init)
     for ep in range(start, a.epochs):
-        tot = np.zeros(4)
+        tot = np.zeros(4) if dev.type == "cpu" else torch.zeros(4, device=dev)
+        epoch_start, busy = time.time(), BusySampler(dev)
         for idx, flip, offsets in epoch_batches(n, a.batch, a.seed, ep, frame, crop):
             if crop is None:
                 x, y = raw[idx], gt[idx]
@@ -272,7 +317,11 @@ def main():
             targets = targets_for(labels, idx, flip, dev, offsets, frame, crop)
             for grp in opt.param_groups:
                 grp["lr"] = lr0 * lf(step) * min(1.0, (step + 1) / warm)
-            recon, preds = model(x, psf.expand(len(idx), -1, -1, -1), window)
+            x = x.contiguous(memory_format=layout)
+            with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=amp):
+                recon, preds = model(x, psf.expand(len(idx), -1, -1, -1), window)
+            # The losses in float32: bf16's 8 bits of mantissa would round the box terms.
+            recon, preds = recon.float(), [p.float() for p in preds] if isinstance(preds, (list, tuple)) else preds.float()
             l_rec = F.mse_loss(recon, y)
             if a.head == "v5":
                 l_det, parts = yolo_v5_loss(preds, targets, model.detect.anchors, NUM_CLASSES)
@@ -284,8 +333,17 @@ def main():
             torch.nn.utils.clip_grad_norm_(model.parameters(), HYP["clip"])
             opt.step()
             step += 1
-            tot += np.array([l_rec.item(), *parts.cpu().numpy()])
-        rec = {"epoch": ep + 1, "minutes": round(minutes(), 2), "l_rec": tot[0] / nb, **{k: tot[i + 1] / nb for i, k in enumerate(parts_names)}}
+            if dev.type == "cpu":
+                tot += np.array([l_rec.item(), *parts.cpu().numpy()])
+            else:  # summed where it lives: a read each step would wait for the GPU
+                tot += torch.cat([l_rec.detach().view(1), parts.detach().view(-1)])
+        tot = tot if dev.type == "cpu" else tot.cpu().numpy()
+        seconds = time.time() - epoch_start
+        rec = {"epoch": ep + 1, "minutes": round(minutes(), 2), "l_rec": tot[0] / nb, **{k: tot[i + 1] / nb for i, k in enumerate(parts_names)},
+               "frames_per_second": round(n / max(seconds, 1e-9), 1)}
+        share = busy.stop()
+        if share is not None:
+            rec["gpu_busy_share"] = round(share, 3)
         last = ep + 1 == a.epochs or minutes() > a.minutes
         if (ep + 1) % a.eval_every == 0 or last:
             rec["map50"], rec["map50_95"] = evaluate(model, eraw, elabels, psf, size, a.head)
