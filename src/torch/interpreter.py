@@ -396,6 +396,8 @@ class Graph(torch.nn.Module):
             if n.op_type == "Constant":
                 self.consts[n.output[0]] = torch.from_numpy(numpy_helper.to_array(n.attribute[0].t).copy())
         self.requant = self.requantized_bias_inputs() if self.scales else {}
+        # Frame-shaped constants cut to crops (`crop_constants`): name -> stride, whole value, buffer.
+        self.crop_strides, self.crop_full, self.crop_buf = {}, {}, {}
         self.plans = {}  # wanted values -> the nodes they need, computed once per request
         self.layout = torch.contiguous_format
 
@@ -432,7 +434,7 @@ class Graph(torch.nn.Module):
     def set_window(self, offset):
         """The frame-shaped constants cut to the crop at `offset` (y, x) in pixels, or whole
         (None)."""
-        if not getattr(self, "crop_buf", None):
+        if not self.crop_buf:
             return
         if offset is None:
             self.consts.update(self.crop_full)

@@ -16,6 +16,13 @@ fn compile(model: &str, recipe: &str, out: &std::path::Path) -> serde_json::Valu
     serde_json::from_str(&r.stdout).unwrap()
 }
 
+/// Runs `models/pdinet/export.py` with `args` from the repository root (in the cache's torch
+/// venv); fails the test on its error.
+fn export_pdinet(args: &[&str]) {
+    let out = std::process::Command::new(pdi_compile::pyenv::torch_python().unwrap()).current_dir(repo()).arg("models/pdinet/export.py").args(args).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
 const LOSSLESS: &str = "strip-recon, bind-psf, fold-constants, fold-psf-gates, fold-bn, resize-to-deconv, dce";
 
 /// Every op the compiler emits for both heads, pruned or not, float or INT8 (QDQ, which
@@ -247,13 +254,7 @@ fn two_gloo_ranks_train_the_weights_of_one_process() {
 fn the_full_size_model_recovers_end_to_end_on_the_cpu() {
     let dir = tempfile::tempdir().unwrap();
     let export = dir.path().join("full");
-    let python = pdi_compile::pyenv::torch_python().unwrap();
-    let out = std::process::Command::new(python)
-        .current_dir(repo().join("models"))
-        .args(["pdinet/export.py", "--out", export.to_str().unwrap(), "--width", "1.0", "--size", "640x480", "--head", "v5", "--psf", "input", "--opset", "17", "--fold", "off"])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    export_pdinet(&["--out", export.to_str().unwrap(), "--width", "1.0", "--size", "640x480", "--head", "v5", "--psf", "input", "--opset", "17", "--fold", "off"]);
     let model = std::fs::read_dir(&export).unwrap().map(|e| e.unwrap().path()).find(|p| p.extension().is_some_and(|e| e == "onnx")).expect("an exported model");
     assert!(std::fs::metadata(&model).unwrap().len() > 50 << 20, "the full-size export");
     let recipe = dir.path().join("full.yaml");
@@ -289,12 +290,7 @@ fn crops_cut_the_gate_maps_and_refuse_what_cannot_follow() {
     use pdi_compile::torch::heads::{feature_specs, head_specs};
     let dir = tempfile::tempdir().unwrap();
     let export = dir.path().join("e");
-    let python = pdi_compile::pyenv::torch_python().unwrap();
-    let out = std::process::Command::new(python)
-        .args(["models/pdinet/export.py", "--out", export.to_str().unwrap(), "--weights-from", "models/trained/pdinet_v5_tiny_trained.onnx", "--size", "640x480"])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    export_pdinet(&["--out", export.to_str().unwrap(), "--weights-from", "models/trained/pdinet_v5_tiny_trained.onnx", "--size", "640x480"]);
     let compiled = dir.path().join("c");
     compile(export.join("pdinet_v5_tiny_trained_640x480.onnx").to_str().unwrap(), "passes/detect-lossless.yaml", &compiled);
     let m = load(&compiled.join("model.onnx"));
