@@ -196,6 +196,27 @@ pub fn output_errors_at(reference: &ModelProto, candidate: &ModelProto, feeds: &
     Ok(sums.into_iter().map(|((k, group), s)| OutputError { output: outputs[k].clone(), group, error: s.finish() }).collect())
 }
 
+/// mAP@0.5:0.95 of `candidate`'s detections against `reference`'s confident ones, with
+/// validation's decode and agreement truth (`verify`'s agreement figure), or None when the
+/// outputs hold no detection head it can decode.
+pub fn detection_agreement(reference: &ModelProto, candidate: &ModelProto, feeds: &Feeds, threads: usize) -> Result<Option<f64>> {
+    use crate::metrics::validation::{agreement_truth, detections};
+    let g = reference.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+    let graph = Graph::build(g)?;
+    let outputs: Vec<String> = g.output.iter().map(|o| o.name.clone()).collect();
+    let head = head::detect(&graph, &infer(&graph), &outputs);
+    let Some(classes) = head.classes.filter(|_| head.output.is_some()) else { return Ok(None) };
+    let mut r = OrtRuntime::with_options(reference, GraphOptimizationLevel::Level3, threads)?;
+    let mut c = OrtRuntime::with_options(candidate, GraphOptimizationLevel::Level3, threads)?;
+    let (mut theirs, mut ours) = (Vec::new(), Vec::new());
+    for feed in feeds {
+        theirs.push(detections(&head, &r.run(feed)?)?);
+        ours.push(detections(&head, &c.run(feed)?)?);
+    }
+    let (truth, _) = agreement_truth(&theirs, classes.max(1));
+    Ok(Some(crate::metrics::coco_map::coco_map(&truth, &ours, classes.max(1)).map50_95))
+}
+
 /// The worst rel L2 over outputs and groups (a group's error when the output has groups).
 pub fn worst_rel_l2(errors: &[OutputError]) -> f64 {
     let grouped: std::collections::HashSet<&str> = errors.iter().filter(|e| e.group.is_some()).map(|e| e.output.as_str()).collect();

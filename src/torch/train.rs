@@ -61,6 +61,10 @@ pub struct Outcome {
     /// The crops trained on (`WxH`), or None for whole frames.
     #[serde(default)]
     pub crop: Option<String>,
+    /// With `ema`: its decay, the held-out loss of the last step's weights and of the
+    /// average, and whether the average was kept.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ema: Option<serde_json::Value>,
     pub device: String,
     pub torch: String,
 }
@@ -160,7 +164,7 @@ pub fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Tensor], 
     let mut config = serde_json::json!({
         "student": dir.join("student.onnx"), "teacher": dir.join("teacher.onnx"), "out": dir.join("trained.onnx"),
         "frames": dir.join("frames.npy"), "held_out": dir.join("held_out.npy"), "heads": job.heads, "features": job.features,
-        "window": o.window, "crop": crop, "trainable": o.trainable, "steps": s.steps, "warmup": s.warmup, "minutes": s.minutes, "threads": (s.threads() / s.devices.max(1)).max(1), "lr": s.lr, "batch": s.batch, "seed": o.seed, "cuda_graph": s.cuda_graph,
+        "window": o.window, "crop": crop, "trainable": o.trainable, "steps": s.steps, "warmup": s.warmup, "minutes": s.minutes, "threads": (s.threads() / s.devices.max(1)).max(1), "lr": s.lr, "batch": s.batch, "seed": o.seed, "cuda_graph": s.cuda_graph, "ema": s.ema,
         "device": if s.device.is_empty() { serde_json::Value::Null } else { s.device.clone().into() },
         "outputs_to": if job.outputs { serde_json::json!(outputs_to) } else { serde_json::Value::Null },
     });

@@ -299,6 +299,8 @@ def train(cfg):
     if WORLD > 1:
         model = torch.nn.parallel.DistributedDataParallel(student, device_ids=[dev.index] if dev.type == "cuda" else None, broadcast_buffers=False)
 
+    ema = Ema(student, cfg["ema"], dev) if cfg.get("ema") else None
+
     def train_step(x):
         with torch.no_grad():
             t = teacher(x, names)
@@ -307,6 +309,8 @@ def train(cfg):
         loss.backward()
         opt.step()
         student.restore_pinned()
+        if ema is not None:
+            ema.update()
         return loss.detach()
     run_step = Captured(train_step, opt) if graphed else train_step
     # The augmentation draws on the device (the frame order stays the CPU generator's).
@@ -343,6 +347,8 @@ def train(cfg):
                     g["lr"].fill_(g["base_lr"] * scale)
                 else:
                     g["lr"] = g["base_lr"] * scale
+            if ema is not None:
+                ema.set_step(step)
             loss = run_step(x)
             step, seen, cnt = step + 1, seen + len(x) * WORLD, cnt + 1
             # On a GPU summed on the device (a read per step waits for it), read every 10 steps.
@@ -357,6 +363,17 @@ def train(cfg):
     seconds = time.time() - start
     gpu_busy = busy.stop()
     after = held_loss()
+    averaged = None
+    if ema is not None:
+        # The average replaces the last step's weights only where it is closer to the
+        # teacher on the held-out frames.
+        last = ema.swap()
+        averaged = {"decay": cfg["ema"], "held_out_loss_last": after, "held_out_loss_average": held_loss()}
+        averaged["kept"] = averaged["held_out_loss_average"] < after
+        if averaged["kept"]:
+            after = averaged["held_out_loss_average"]
+        else:
+            ema.restore(last)
     if RANK == 0:
         student.write_back(student_model)
         onnx.save(student_model, cfg["out"])
@@ -365,10 +382,49 @@ def train(cfg):
     emit({"event": "done", "held_out_loss_before": before, "held_out_loss_after": after, "loss_per_epoch": curve, "epochs": epoch,
           "steps": step, "steps_planned": steps, "capped": capped, "seconds": seconds, "frames_per_second": seen / max(seconds, 1e-9),
           "steps_per_second": step / max(seconds, 1e-9), "gpu_busy_share": gpu_busy, "device": str(dev), "threads": torch.get_num_threads(), "ranks": WORLD, "torch": torch.__version__,
-          "batch": batch, "cuda_graph": run_step.report() if graphed else None, "crop": f"{crops['w']}x{crops['h']}" if crops else None})
+          "batch": batch, "cuda_graph": run_step.report() if graphed else None, "crop": f"{crops['w']}x{crops['h']}" if crops else None, "ema": averaged})
     if WORLD > 1:
         dist.barrier()
         dist.destroy_process_group()
+
+
+class Ema:
+    """An exponential moving average of the student's parameters, as YOLO trainers keep: the
+    average of the late steps lands nearer the middle of the valley the last steps wander in.
+    The decay ramps as (1 + step) / (10 + step) up to `decay`, so the first steps' weights
+    (far from the teacher) fade quickly. On a GPU the decay is a device tensor written
+    outside the captured step, as the learning rates are."""
+
+    def __init__(self, module, decay, dev):
+        self.params = list(module.parameters())
+        self.avg = [p.detach().clone() for p in self.params]
+        self.top = decay
+        self.decay = torch.zeros((), device=dev) if dev.type == "cuda" else 0.0
+
+    def set_step(self, step):
+        d = min(self.top, (1 + step) / (10 + step))
+        if torch.is_tensor(self.decay):
+            self.decay.fill_(d)
+        else:
+            self.decay = d
+
+    def update(self):
+        with torch.no_grad():
+            for a, p in zip(self.avg, self.params):
+                a.mul_(self.decay).add_((1 - self.decay) * p.detach())
+
+    def swap(self):
+        """Puts the average into the parameters; returns the last step's weights."""
+        with torch.no_grad():
+            last = [p.detach().clone() for p in self.params]
+            for a, p in zip(self.avg, self.params):
+                p.copy_(a)
+        return last
+
+    def restore(self, weights):
+        with torch.no_grad():
+            for w, p in zip(weights, self.params):
+                p.copy_(w)
 
 
 class Captured:

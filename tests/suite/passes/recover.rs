@@ -79,7 +79,7 @@ fn recovery_improves_agreement_and_keeps_the_nodes() {
     let prune = "{prune: {ratio: 0.5, compensate: none}}";
     let (plain, recovered) = (dir.path().join("plain.yaml"), dir.path().join("recovered.yaml"));
     std::fs::write(&plain, format!("name: p\npasses: [{LOSSLESS}, {prune}, cleanup]\n")).unwrap();
-    std::fs::write(&recovered, format!("name: r\npasses: [{LOSSLESS}, {prune}, {{recover: {{steps: 72, frames: 96, batch: 8}}}}, cleanup]\n")).unwrap();
+    std::fs::write(&recovered, format!("name: r\npasses: [{LOSSLESS}, {prune}, {{recover: {{steps: 72, frames: 96, batch: 8, ema: 0.9}}}}, cleanup]\n")).unwrap();
     let model = "models/trained/pdinet_v5_tiny_trained.onnx";
     compile(model, plain.to_str().unwrap(), &dir.path().join("plain"));
     let report = compile(model, recovered.to_str().unwrap(), &dir.path().join("recovered"));
@@ -89,6 +89,13 @@ fn recovery_improves_agreement_and_keeps_the_nodes() {
     let (before, after) = (worst(&r["output_rel_l2"]["before"]), worst(&r["output_rel_l2"]["after"]));
     assert!(after < before, "recovery improves the worst output group: {before} -> {after}");
     assert_eq!(r["kept"], true);
+    let (a0, a1) = (r["detection_agreement"]["before"].as_f64().unwrap(), r["detection_agreement"]["after"].as_f64().unwrap());
+    assert!(a1 > a0, "the detections agree better with the unpruned model's: {a0} -> {a1}");
+    // The weights' average replaces the last step's only where the held-out loss says so.
+    let ema = &r["training"]["ema"];
+    let (last, average) = (ema["held_out_loss_last"].as_f64().unwrap(), ema["held_out_loss_average"].as_f64().unwrap());
+    assert_eq!(ema["kept"], average < last, "{ema}");
+    assert_eq!(r["training"]["held_out_loss_after"].as_f64().unwrap(), last.min(average), "{ema}");
     assert!(r["training"]["steps"].as_u64().unwrap() > 0 && r["training"]["frames_per_second"].as_f64().unwrap() > 0.0);
     let nodes = |p: &str| load(&dir.path().join(p).join("model.onnx")).graph.unwrap().node;
     assert_eq!(nodes("plain"), nodes("recovered"), "recovery changes weights only");
@@ -269,12 +276,16 @@ fn the_full_size_model_recovers_end_to_end_on_the_cpu() {
     // 8 asked for plus the draw that holds out a quarter for the rule: all in memory, far
     // under the pass's 1 GiB of pixels (which caps a larger ask, with a warning).
     assert!(frames >= 8 && frames * 640 * 480 * 4 <= 1 << 30, "{frames} training frames held");
-    // The held-out rule's decision follows from the errors it reports: kept exactly when the
-    // worst output group got closer to the unpruned model (two steps may go either way).
+    // The held-out rule's decision follows from what it reports: kept exactly when the
+    // detections agree better with the unpruned model's, or on a tie when the worst output
+    // group got closer (two steps may go either way).
     let worst = |m: &serde_json::Value| m.as_object().unwrap().iter().filter(|(k, _)| k.contains('/')).map(|(_, v)| v.as_f64().unwrap()).fold(0.0, f64::max);
     let (before, after) = (worst(&r["output_rel_l2"]["before"]), worst(&r["output_rel_l2"]["after"]));
     assert!(before.is_finite() && after.is_finite() && before > 0.0, "{r}");
-    assert_eq!(r["kept"], after < before, "kept must say whether the worst group improved ({before} -> {after}): {r}");
+    let agreement = |k: &str| r["detection_agreement"][k].as_f64().unwrap_or_else(|| panic!("a decodable head is judged by its detections: {r}"));
+    let (a0, a1) = (agreement("before"), agreement("after"));
+    let kept = if a1 != a0 { a1 > a0 } else { after < before };
+    assert_eq!(r["kept"], kept, "kept must follow the agreement ({a0} -> {a1}), then the worst group ({before} -> {after}): {r}");
     let macs = |k: &str| report[k]["macs"].as_f64().unwrap();
     assert!(macs("after") < 0.5 * macs("before"), "pruned: {} of {} MACs", macs("after"), macs("before"));
 }
