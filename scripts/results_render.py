@@ -156,6 +156,21 @@ def pruned(f):
              "without training the same model twice."]
 
 
+def averaged(f):
+    a, b, rc = f["average"], f["baseline"], f["recover"]
+    rows = [["last step (the shipped recipe's record" + (f", commit {b['commit'][:10]})" if b else ")"),
+             f4(a["held_out_loss_last"]), "-" if not b else f"{f4(b['map_f32'])} ({b['kept_f32']:.3f}×)"],
+            [f"average, decay {a['decay']}", f4(a["held_out_loss_average"]),
+             f"{f4(f['map_f32'])} ({f['kept_f32']:.3f}×)" if a["kept"] else "not kept"]]
+    same = b is not None and abs(b["held_out_loss_after"] - a["held_out_loss_last"]) < 1e-9
+    return [f"`detect-pruned-f32` on the {f['model']} with `ema: {a['decay']}` in its recovery ({rc['steps']} steps, "
+            f"{dur(rc['seconds'])}); the held-out rule kept {'the average' if a['kept'] else 'the last step'}:", ""] + \
+        table(["weights", "held-out distillation loss", "mAP@0.5:0.95 (of the original's)"], rows) + \
+        ["", "The last step's weights are the shipped recipe's: " + (
+            "its held-out loss is the record's to the last digit." if same else
+            "its held-out loss differs from the record's (another machine or trainer), so the rows compare less directly.")]
+
+
 def camera(f):
     rows = []
     for m in f["models"]:
@@ -218,7 +233,7 @@ BLOCKS = {"lossless": lossless, "latency-640": latency, "camera-640": camera, "p
 
 
 def block(r):
-    fn = BLOCKS.get(r["name"]) or (pruned if r["name"].startswith("pruned-") else None)
+    fn = BLOCKS.get(r["name"]) or (pruned if r["name"].startswith("pruned-") else averaged if r["name"].startswith("ema-") else None)
     commit = r["commit"][:10] + (" (with uncommitted changes to the product)" if r["commit_has_changes"] else "")
     load = r["machine"].get("load_before")
     lines = [f"**Record `{r['name']}`** ({r['tier']} tier of `scripts/results`): {r['date']}, {machine(r['machine'])}"
@@ -263,6 +278,13 @@ def readme_rows(recs):
             + " of the mAP", cpu[0]["name"], "pruning.md")
         row("+ INT8 (`detect-pruned-int8`)",
             "keeps " + " and ".join(f"{f['kept_int8']:.3f}× ({f['model']})" for f in fs), cpu[0]["name"], "pruning.md")
+    ema = [recs[n] for n in ("ema-v5-w0.25", "ema-v8-w0.25") if n in recs]
+    if ema:
+        fs = [r["figures"] for r in ema]
+        row(f"an average of the weights in recovery (`ema: {fs[0]['decay']}`), against the shipped recipe",
+            "; ".join(f"{f['model']}: " + (f"{f['kept_f32']:.3f}× kept" if f["average"]["kept"] else "the average not kept")
+                      + ("" if not f["baseline"] else f" (the recipe: {f['baseline']['kept_f32']:.3f}×)") for f in fs),
+            ema[0]["name"], "pruning.md")
     gpu = [recs[n] for n in ("pruned-v5-w0.25-gpu", "pruned-v8-w0.25-gpu") if n in recs]
     if gpu:
         fs = [r["figures"] for r in gpu]
