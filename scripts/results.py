@@ -537,7 +537,12 @@ def latency_640(ctx):
             "ops": [{k: o[k] for k in ("op", "kernels", "ms", "share")} for o in prof["by_op"][:4]],
             "layers": [{k: l[k] for k in ("node", "op", "ms", "macs", "gmacs_per_s")} for l in prof["layers"][:4]],
         })
-    return {"model": "v5 w0.25 (trained weights) at 640x480", "runs": c["runs"], "threads": c["threads"], "rows": rows}
+    gaps = []
+    for name in ("f32", "pruned-f32"):
+        g = next(g["gap"] for g in c["gaps"] if g["model"] == str(ctx.dir / name / "model.onnx"))
+        gaps.append({"variant": name, **{k: g[k] for k in ("ort_kernel_ms", "tract_kernel_ms", "ort_only_ms", "tract_only_ms")},
+                     "by_tract_op": g["by_tract_op"][:6], "layers": g["layers"][:4]})
+    return {"model": "v5 w0.25 (trained weights) at 640x480", "runs": c["runs"], "threads": c["threads"], "rows": rows, "gaps": gaps}
 
 
 def gpu_name():

@@ -220,6 +220,16 @@ def latency(f):
                 f"{o('pruned-int8-all'):.3f}× without `narrow_float`); `detect-int8` with `narrow_float: 16` "
                 f"{o('int8-narrow'):.3f}×. tract against ONNX Runtime: "
                 + ", ".join(f"`{v}` {t(v):.2f}×" for v in ("f32", "pruned-f32", "int8", "pruned-int8")) + "."]
+    for g in f.get("gaps", []):
+        out += ["", f"Where tract loses on `{g['variant']}` (layers joined by the model node each engine ran): kernels "
+                    f"{g['tract_kernel_ms']:.2f} ms against ONNX Runtime's {g['ort_kernel_ms']:.2f}; in kernels with no "
+                    f"counterpart, tract {g['tract_only_ms']:.2f} ms, ONNX Runtime {g['ort_only_ms']:.2f} ms (its layout "
+                    "reorders and fused activations).", ""]
+        out += table(["layers tract runs as", "layers", "tract ms", "ONNX Runtime ms", "tract − ONNX Runtime"],
+                     [[o["op"], str(o["layers"]), f"{o['tract_ms']:.2f}", f"{o['ort_ms']:.2f}", f"{o['tract_ms'] - o['ort_ms']:+.2f}"]
+                      for o in g["by_tract_op"]])
+        out += ["", "The layers it loses most on: " + "; ".join(
+            f"`{l['node']}` {l['tract_ms']:.2f} ms ({l['tract_op']}) against {l['ort_ms']:.2f}" for l in g["layers"]) + "."]
     slow = [(l["node"], l["ms"], l.get("gmacs_per_s")) for l in by[("pruned-int8", "ort")]["layers"][:3]]
     out += ["", "The slowest layers of `pruned-int8` on ONNX Runtime: " + "; ".join(
         f"`{n}` {ms:.2f} ms" + (f" ({g:.1f} GMAC/s)" if g else "") for n, ms, g in slow) + "."]

@@ -157,6 +157,14 @@ pub struct Comparison {
     pub threads: usize,
     pub runs: usize,
     pub rows: Vec<Compared>,
+    /// For each model profiled on both engines: where tract loses to ONNX Runtime.
+    pub gaps: Vec<Gap>,
+}
+
+#[derive(serde::Serialize)]
+pub struct Gap {
+    pub model: String,
+    pub gap: crate::runtime::engine_gap::EngineGap,
 }
 
 #[derive(serde::Serialize)]
@@ -182,7 +190,16 @@ pub fn compare(models: &[PathBuf], engines: &[Engine], data: Option<&Path>, psf:
         let base = rows.iter().find(|r| r.engine == *engine).map_or(*ms, |r| r.median_ms);
         rows.push(Compared { model: model.clone(), engine: *engine, median_ms: *ms, ratio: ms / base, macs: profile.macs, profile });
     }
-    Ok(Comparison { threads, runs, rows })
+    let gaps = models
+        .iter()
+        .filter_map(|m| {
+            let model = m.display().to_string();
+            let on = |e: Engine| rows.iter().find(|r| r.model == model && r.engine == e);
+            let (o, t) = (on(Engine::Ort)?, on(Engine::Tract)?);
+            Some(Gap { gap: crate::runtime::engine_gap::between(&o.profile, &t.profile), model })
+        })
+        .collect();
+    Ok(Comparison { threads, runs, rows, gaps })
 }
 
 impl Comparison {
@@ -199,6 +216,9 @@ impl Comparison {
         }
         for r in &self.rows {
             s += &format!("{}\n{}\n", r.model, r.profile.render());
+        }
+        for g in &self.gaps {
+            s += &format!("{}\n{}\n", g.model, g.gap.render());
         }
         s
     }

@@ -3,6 +3,7 @@
 //! Any intermediate value can be observed by asking for it as an extra output
 //! ([`crate::onnx::edit::expose_outputs`] rewrites the model before the session is built).
 
+pub mod engine_gap;
 pub mod latency;
 pub mod op_profile;
 pub mod ort_lib;

@@ -46,6 +46,10 @@ pub struct OpProfile {
     /// The fastest GMAC/s any layer of 1 M MACs or more reached: what this engine does on this
     /// CPU when a layer suits it.
     pub best_gmacs_per_s: f64,
+    /// Every layer, slowest first (`layers` keeps the first few): what `engine_gap` joins
+    /// across engines.
+    #[serde(skip)]
+    pub all_layers: Vec<LayerTime>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -222,6 +226,7 @@ fn summarize(engine: Engine, run_ms: f64, kernels: Vec<(String, String, f64)>, c
     let macs: u64 = costs.by_node.values().map(|c| c.0).sum();
     let best = layers.iter().filter(|l| l.macs >= 1_000_000).filter_map(|l| l.gmacs_per_s).fold(0.0, f64::max);
     layers.sort_by(|a, b| b.ms.total_cmp(&a.ms));
+    let all_layers = layers.clone();
     layers.truncate(TOP_LAYERS);
     OpProfile {
         engine,
@@ -233,6 +238,7 @@ fn summarize(engine: Engine, run_ms: f64, kernels: Vec<(String, String, f64)>, c
         macs,
         gmacs_per_s: macs as f64 / (run_ms.max(1e-6) / 1e3) / 1e9,
         best_gmacs_per_s: best,
+        all_layers,
     }
 }
 

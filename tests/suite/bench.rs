@@ -71,3 +71,34 @@ fn bench_measures_every_variant_and_marks_the_pareto_front() {
     assert!(red > 100, "the Pareto front is drawn ({red} red pixels)");
     assert!(out.join("variants/pruned-int8/model.onnx").is_file() && out.join("recipes/int8.yaml").is_file());
 }
+
+/// `profile` on two models, both engines: a row for each model and engine, and for each model
+/// where tract stands against ONNX Runtime, with every kernel's time counted once, in a layer
+/// both engines ran or on the side that has no counterpart for it.
+#[test]
+fn profile_joins_the_engines_layers() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("f32");
+    let model = "models/trained/pdinet_v5_tiny_trained.onnx";
+    let r = cli(&["compile", model, "--pipeline", "passes/detect-f32.yaml", "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap()]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let compiled = out.join("model.onnx");
+    let r = cli(&["profile", model, compiled.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "--runs", "2", "--threads", "1", "--json"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let c: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    assert_eq!(c["rows"].as_array().unwrap().len(), 4, "two models on two engines");
+    let gaps = c["gaps"].as_array().unwrap();
+    assert_eq!(gaps.len(), 2, "{c}");
+    let num = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap();
+    for g in gaps.iter().map(|g| &g["gap"]) {
+        let ops = g["by_tract_op"].as_array().unwrap();
+        assert!(!ops.is_empty(), "the convolutions match across engines: {g}");
+        let (tract, ort): (f64, f64) = ops.iter().fold((0.0, 0.0), |(t, o), op| (t + num(op, "tract_ms"), o + num(op, "ort_ms")));
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * b.max(1.0);
+        assert!(close(tract + num(g, "tract_only_ms"), num(g, "tract_kernel_ms")), "tract's kernels counted once: {g}");
+        assert!(close(ort + num(g, "ort_only_ms"), num(g, "ort_kernel_ms")), "ONNX Runtime's kernels counted once: {g}");
+        let losses: Vec<f64> = g["layers"].as_array().unwrap().iter().map(|l| num(l, "tract_ms") - num(l, "ort_ms")).collect();
+        assert!(losses.windows(2).all(|w| w[0] >= w[1]), "largest loss first: {losses:?}");
+    }
+    assert!(cli(&["profile", model, compiled.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "--runs", "2", "--threads", "1"]).stdout.contains("tract against ONNX Runtime"));
+}
