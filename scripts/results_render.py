@@ -288,13 +288,6 @@ def readme_rows(recs):
             + " of the mAP", cpu[0]["name"], "pruning.md")
         row("+ INT8 (`detect-pruned-int8`)",
             "keeps " + " and ".join(f"{f['kept_int8']:.3f}× ({f['model']})" for f in fs), cpu[0]["name"], "pruning.md")
-    ema = [recs[n] for n in ("ema-v5-w0.25", "ema-v8-w0.25") if n in recs]
-    if ema:
-        fs = [r["figures"] for r in ema]
-        row(f"an average of the weights in recovery (`ema: {fs[0]['decay']}`), against the shipped recipe",
-            "; ".join(f"{f['model']}: " + (f"{f['kept_f32']:.3f}× kept" if f["average"]["kept"] else "the average not kept")
-                      + ("" if not f["baseline"] else f" (the recipe: {f['baseline']['kept_f32']:.3f}×)") for f in fs),
-            ema[0]["name"], "pruning.md")
     gpu = [recs[n] for n in ("pruned-v5-w0.25-gpu", "pruned-v8-w0.25-gpu") if n in recs]
     if gpu:
         fs = [r["figures"] for r in gpu]
