@@ -29,7 +29,7 @@ use crate::torch::heads::{feature_specs, head_specs_against};
 use crate::torch::schedule::Schedule;
 use crate::torch::train::{train, Job, Outcome, Training};
 use std::collections::HashMap;
-use crate::quant::attribution::{detection_agreement, output_errors, worst_rel_l2};
+use crate::quant::attribution::{output_errors, worst_rel_l2, DetectionAgreement};
 use crate::scene::compare::SceneView;
 use anyhow::{anyhow, bail, Result};
 
@@ -129,7 +129,6 @@ impl Pass for Recover {
         let view = SceneView::of_teacher(model, &teacher)?;
         let errors = |m: &ModelProto| output_errors(&teacher, m, check, threads, view.as_ref());
         let before = errors(model)?;
-        let agreement = |m: &ModelProto| detection_agreement(&teacher, m, check, threads);
         let mut trained = model.clone();
         let trainable = match o.train {
             Train::All => None,
@@ -143,7 +142,9 @@ impl Pass for Recover {
         // sit near zero is at rel L2 1.0, and a half-recovered one that finds most objects
         // with a few extra boxes can sit above it. A scene's student sees a window of the
         // teacher's frames, so there (and without a head) the worst output group decides.
-        let judged = if view.is_none() { agreement(model)?.zip(agreement(&trained)?) } else { None };
+        // The teacher's detections are decoded once for both scores.
+        let agreement = if view.is_none() { DetectionAgreement::of(&teacher, check, threads)? } else { None };
+        let judged = agreement.map(|a| Ok::<_, anyhow::Error>((a.score(model)?, a.score(&trained)?))).transpose()?;
         let kept = match judged {
             Some((b, a)) if a != b => a > b,
             _ => worst_rel_l2(&after) < worst_rel_l2(&before),

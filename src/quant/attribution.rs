@@ -196,25 +196,40 @@ pub fn output_errors_at(reference: &ModelProto, candidate: &ModelProto, feeds: &
     Ok(sums.into_iter().map(|((k, group), s)| OutputError { output: outputs[k].clone(), group, error: s.finish() }).collect())
 }
 
-/// mAP@0.5:0.95 of `candidate`'s detections against `reference`'s confident ones, with
-/// validation's decode and agreement truth (`verify`'s agreement figure), or None when the
-/// outputs hold no detection head it can decode.
-pub fn detection_agreement(reference: &ModelProto, candidate: &ModelProto, feeds: &Feeds, threads: usize) -> Result<Option<f64>> {
-    use crate::metrics::validation::{agreement_truth, detections};
-    let g = reference.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
-    let graph = Graph::build(g)?;
-    let outputs: Vec<String> = g.output.iter().map(|o| o.name.clone()).collect();
-    let head = head::detect(&graph, &infer(&graph), &outputs);
-    let Some(classes) = head.classes.filter(|_| head.output.is_some()) else { return Ok(None) };
-    let mut r = OrtRuntime::with_options(reference, GraphOptimizationLevel::Level3, threads)?;
-    let mut c = OrtRuntime::with_options(candidate, GraphOptimizationLevel::Level3, threads)?;
-    let (mut theirs, mut ours) = (Vec::new(), Vec::new());
-    for feed in feeds {
-        theirs.push(detections(&head, &r.run(feed)?)?);
-        ours.push(detections(&head, &c.run(feed)?)?);
+/// The reference's confident detections on some frames, decoded once, that candidates are
+/// scored against (`verify`'s agreement figure: validation's decode and agreement truth).
+pub struct DetectionAgreement<'a> {
+    head: crate::analysis::head::Head,
+    classes: usize,
+    truth: Vec<Vec<crate::metrics::coco_map::Truth>>,
+    feeds: &'a Feeds,
+    threads: usize,
+}
+
+impl<'a> DetectionAgreement<'a> {
+    /// The reference's detections on `feeds`, or None when its outputs hold no detection head
+    /// the decode reads.
+    pub fn of(reference: &ModelProto, feeds: &'a Feeds, threads: usize) -> Result<Option<Self>> {
+        let g = reference.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+        let graph = Graph::build(g)?;
+        let outputs: Vec<String> = g.output.iter().map(|o| o.name.clone()).collect();
+        let head = head::detect(&graph, &infer(&graph), &outputs);
+        let Some(classes) = head.classes.filter(|_| head.output.is_some()).map(|c| c.max(1)) else { return Ok(None) };
+        let theirs = Self::detections(&head, reference, feeds, threads)?;
+        let (truth, _) = crate::metrics::validation::agreement_truth(&theirs, classes);
+        Ok(Some(DetectionAgreement { head, classes, truth, feeds, threads }))
     }
-    let (truth, _) = agreement_truth(&theirs, classes.max(1));
-    Ok(Some(crate::metrics::coco_map::coco_map(&truth, &ours, classes.max(1)).map50_95))
+
+    /// mAP@0.5:0.95 of `candidate`'s detections against the reference's.
+    pub fn score(&self, candidate: &ModelProto) -> Result<f64> {
+        let ours = Self::detections(&self.head, candidate, self.feeds, self.threads)?;
+        Ok(crate::metrics::coco_map::coco_map(&self.truth, &ours, self.classes).map50_95)
+    }
+
+    fn detections(head: &crate::analysis::head::Head, model: &ModelProto, feeds: &Feeds, threads: usize) -> Result<Vec<Vec<crate::detect::Detection>>> {
+        let mut rt = OrtRuntime::with_options(model, GraphOptimizationLevel::Level3, threads)?;
+        feeds.iter().map(|feed| crate::metrics::validation::detections(head, &rt.run(feed)?)).collect()
+    }
 }
 
 /// The worst rel L2 over outputs and groups (a group's error when the output has groups).
