@@ -171,6 +171,19 @@ def averaged(f):
             "its held-out loss differs from the record's (another machine or trainer), so the rows compare less directly.")]
 
 
+def direction(f):
+    b, rs = f["baseline"], f["recover"]
+    steps = " + ".join(f"{r['steps']}" for r in rs)
+    secs = sum(r["seconds"] for r in rs)
+    rows = [["the shipped recipe's record" + (f" (commit {b['commit'][:10]})" if b else ""),
+             "-" if not b else f"{f4(b['map_f32'])} ({b['kept_f32']:.3f}×)", "-" if not b else f"{f4(b['map_int8'])} ({b['kept_int8']:.3f}×)"],
+            [f"{f['direction']} ({f['macs_ratio']:.3f}× MACs)", f"{f4(f['map_f32'])} ({f['kept_f32']:.3f}×)", f"{f4(f['map_int8'])} ({f['kept_int8']:.3f}×)"]]
+    gain = "" if not b else f" Against the record: f32 {f['kept_f32'] - b['kept_f32']:+.3f}, INT8 {f['kept_int8'] - b['kept_int8']:+.3f} of the original's mAP."
+    return [f"`detect-pruned-f32` on the {f['model']} with one change: {f['change']}. Recovery: {steps} steps in "
+            f"{dur(secs)}; mAP@0.5:0.95 of the original's ({f4(f['map_original'])}):", ""] + \
+        table(["recipe", "pruned f32", "pruned INT8"], rows) + ([""] + [gain.strip()] if gain else [])
+
+
 def camera(f):
     rows = []
     for m in f["models"]:
@@ -243,7 +256,8 @@ BLOCKS = {"lossless": lossless, "latency-640": latency, "camera-640": camera, "p
 
 
 def block(r):
-    fn = BLOCKS.get(r["name"]) or (pruned if r["name"].startswith("pruned-") else averaged if r["name"].startswith("ema-") else None)
+    fn = BLOCKS.get(r["name"]) or (pruned if r["name"].startswith("pruned-") else averaged if r["name"].startswith("ema-")
+                                   else direction if "direction" in r["figures"] else None)
     commit = r["commit"][:10] + (" (with uncommitted changes to the product)" if r["commit_has_changes"] else "")
     load = r["machine"].get("load_before")
     lines = [f"**Record `{r['name']}`** ({r['tier']} tier of `scripts/results`): {r['date']}, {machine(r['machine'])}"
