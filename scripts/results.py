@@ -559,24 +559,28 @@ def latency_640(ctx):
     for name, text in tried.items():
         (tried_prune / f"detect-pruned-f32-{name}.yaml").write_text(text.replace("name: detect-pruned-f32", f"name: detect-pruned-f32-{name}"))
     narrow = "narrow_float: 16"
-    # (variant, what it is, compiled from, recipe)
+    # (variant, what it is, compiled from, recipe, compile's further arguments)
     plan = [
-        ("f32", "detect-f32", None, "passes/detect-f32.yaml"),
-        ("int8", "detect-int8", "f32", own_passes(ctx, "detect-int8")),
-        ("int8-narrow", f"detect-int8 with {narrow}", "f32", own_passes(ctx, "detect-int8", narrow)),
-        ("pruned-f32", "detect-pruned-f32", None, recipes / "detect-pruned-f32.yaml"),
-        ("pruned-int8", "detect-pruned-int8", "pruned-f32", own_passes(ctx, "detect-pruned-int8")),
-        ("pruned-int8-all", "detect-pruned-int8 with narrow_float: 0 (every layer a candidate)", "pruned-f32", own_passes(ctx, "detect-pruned-int8", "narrow_float: 0")),
-        ("pruned-f32-round16", "detect-pruned-f32 with round_to: 16", None, tried_prune / "detect-pruned-f32-round16.yaml"),
-        ("pruned-f32-latency", "detect-pruned-f32 with target: {latency: 0.42}", None, tried_prune / "detect-pruned-f32-latency.yaml"),
+        ("f32", "detect-f32", None, "passes/detect-f32.yaml", ()),
+        ("int8", "detect-int8", "f32", own_passes(ctx, "detect-int8"), ()),
+        ("int8-narrow", f"detect-int8 with {narrow}", "f32", own_passes(ctx, "detect-int8", narrow), ()),
+        ("pruned-f32", "detect-pruned-f32", None, recipes / "detect-pruned-f32.yaml", ()),
+        ("pruned-int8", "detect-pruned-int8", "pruned-f32", own_passes(ctx, "detect-pruned-int8"), ()),
+        ("pruned-int8-all", "detect-pruned-int8 with narrow_float: 0 (every layer a candidate)", "pruned-f32", own_passes(ctx, "detect-pruned-int8", "narrow_float: 0"), ()),
+        ("pruned-f32-round16", "detect-pruned-f32 with round_to: 16", None, tried_prune / "detect-pruned-f32-round16.yaml", ()),
+        ("pruned-f32-latency", "detect-pruned-f32 with target: {latency: 0.42}", None, tried_prune / "detect-pruned-f32-latency.yaml", ()),
+        # What a tract deployment ships: the same models in the forms `--target tract` chose
+        # for tract on this machine (wide depthwise split, column tiles where they ran faster).
+        ("f32-tract", "detect-f32, --target tract", "f32", "passes/detect-f32.yaml", ("--target", "tract")),
+        ("pruned-f32-tract", "detect-pruned-f32, --target tract", "pruned-f32", "passes/detect-f32.yaml", ("--target", "tract")),
     ]
     macs = {}
-    for name, _, base, recipe in plan:
+    for name, _, base, recipe, extra in plan:
         src = model if base is None else ctx.dir / base / "model.onnx"
-        macs[name] = compile_(ctx, src, recipe, ctx.dir / name)["after"]["macs"]
+        macs[name] = compile_(ctx, src, recipe, ctx.dir / name, *extra)["after"]["macs"]
     c, _ = ctx.json([BIN, "profile", *[ctx.dir / name / "model.onnx" for name, *_ in plan], "--psf", PSF, "--runs", 30])
     rows = []
-    for (name, what, _, _), engine in [(p, e) for p in plan for e in ("ort", "tract")]:
+    for (name, what, *_), engine in [(p, e) for p in plan for e in ("ort", "tract")]:
         r = next(r for r in c["rows"] if r["model"] == str(ctx.dir / name / "model.onnx") and r["engine"] == engine)
         prof = r["profile"]
         rows.append({
@@ -588,11 +592,74 @@ def latency_640(ctx):
             "layers": [{k: l[k] for k in ("node", "op", "ms", "macs", "gmacs_per_s")} for l in prof["layers"][:4]],
         })
     gaps = []
-    for name in ("f32", "pruned-f32"):
+    for name in ("f32", "pruned-f32", "f32-tract", "pruned-f32-tract"):
         g = next(g["gap"] for g in c["gaps"] if g["model"] == str(ctx.dir / name / "model.onnx"))
         gaps.append({"variant": name, **{k: g[k] for k in ("ort_kernel_ms", "tract_kernel_ms", "ort_only_ms", "tract_only_ms")},
                      "by_tract_op": g["by_tract_op"][:6], "layers": g["layers"][:4]})
-    return {"model": "v5 w0.25 (trained weights) at 640x480", "runs": c["runs"], "threads": c["threads"], "rows": rows, "gaps": gaps}
+    tiles = {name: json.loads((ctx.dir / name / "report.json").read_text())["target_check"] for name in ("f32-tract", "pruned-f32-tract")}
+    return {"model": "v5 w0.25 (trained weights) at 640x480", "runs": c["runs"], "tract_forms": {
+                n: {"depthwise_split": t.get("depthwise_split", []), "conv_tiles": t.get("conv_tiles", []),
+                    "fastest_threads": t["fastest_threads"], "load": t["load"]} for n, t in tiles.items()},
+            "threads": c["threads"], "rows": rows, "gaps": gaps}
+
+
+# The layers where tract loses most to ONNX Runtime on the width-0.25 v5 at 640x480 (the
+# latency record's gap tables), each alone in a model of its own: (name, channels, stride of
+# the layer's grid against the 640x480 frame, op, attributes). A 1x1 convolution from the
+# frame to the channels comes first, so every model takes the same frame; the gap table
+# times the layer itself.
+KERNELS = [
+    ("conv3x3-8ch-640x480", 8, 1, "Conv", {"kernel_shape": [3, 3], "pads": [1, 1, 1, 1]}),
+    ("conv3x3-8ch-640x480-unpadded", 8, 1, "Conv", {"kernel_shape": [3, 3], "pads": [0, 0, 0, 0]}),
+    ("conv3x3-16ch-320x240", 16, 2, "Conv", {"kernel_shape": [3, 3], "pads": [1, 1, 1, 1]}),
+    ("conv3x3-32ch-160x120", 32, 4, "Conv", {"kernel_shape": [3, 3], "pads": [1, 1, 1, 1]}),
+    ("depthwise15x15-32ch-160x120", 32, 4, "Conv", {"kernel_shape": [15, 15], "pads": [7, 7, 7, 7], "group": 32}),
+    ("maxpool2x2-8ch-640x480", 8, 1, "MaxPool", {"kernel_shape": [2, 2], "strides": [2, 2]}),
+]
+
+
+def kernel_model(path, channels, stride, op, attrs, seed):
+    """One layer of `KERNELS` as an ONNX model on a 640x480 frame, random weights."""
+    import numpy as np
+    import onnx
+    from onnx import helper, numpy_helper, TensorProto
+
+    rng = np.random.default_rng(seed)
+    init = [numpy_helper.from_array(rng.standard_normal((channels, 1, 1, 1)).astype(np.float32), "prefix.w")]
+    nodes = [helper.make_node("Conv", ["image", "prefix.w"], ["x"], name="/prefix/Conv", kernel_shape=[1, 1], strides=[stride, stride])]
+    inputs = ["x"]
+    if op == "Conv":
+        k = attrs["kernel_shape"]
+        per = channels // attrs.get("group", 1)
+        w = (rng.standard_normal((channels, per, *k)) / np.sqrt(per * k[0] * k[1])).astype(np.float32)
+        init += [numpy_helper.from_array(w, "case.w"), numpy_helper.from_array(rng.standard_normal(channels).astype(np.float32), "case.b")]
+        inputs += ["case.w", "case.b"]
+    nodes.append(helper.make_node(op, inputs, ["y"], name=f"/case/{op}", **attrs))
+    graph = helper.make_graph(nodes, "kernel", [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 1, 480, 640])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)], init)
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), path)
+
+
+def tract_kernels(ctx):
+    """Each layer tract loses most on, alone in a minimal model; both engines in one
+    interleaved loop, then the layer's own time on each from the profiles."""
+    paths = []
+    for i, (name, channels, stride, op, attrs) in enumerate(KERNELS):
+        path = ctx.dir / f"{name}.onnx"
+        kernel_model(path, channels, stride, op, attrs, seed=i)
+        paths.append(path)
+    c, _ = ctx.json([BIN, "profile", *paths, "--runs", 30])
+    rows = []
+    for (name, channels, stride, op, attrs), path in zip(KERNELS, paths):
+        g = next(g["gap"] for g in c["gaps"] if g["model"] == str(path))
+        layer = next(l for l in g["layers"] if l["node"] == f"/case/{op}")
+        whole = {e: next(r["median_ms"] for r in c["rows"] if r["model"] == str(path) and r["engine"] == e) for e in ("ort", "tract")}
+        rows.append({"model": name, "file": f"{name}.onnx", "op": op, "attributes": attrs, "channels": channels,
+                     "height": 480 // stride, "width": 640 // stride, "macs": layer["macs"],
+                     "tract_kernels": layer["tract_op"], "ort_kernels": layer["ort_op"],
+                     "tract_ms": layer["tract_ms"], "ort_ms": layer["ort_ms"],
+                     "model_tract_ms": whole["tract"], "model_ort_ms": whole["ort"]})
+    return {"runs": c["runs"], "threads": c["threads"], "rows": rows}
 
 
 def gpu_name():
@@ -622,6 +689,7 @@ def experiments(gpu):
         ("ship-640-v5", "full", "camera.md", ship_640("v5 w0.25"), cpu),
         ("ship-640-v8", "full", "camera.md", ship_640("v8 w0.25"), cpu),
         ("latency-640", "full", "latency.md", latency_640, cpu),
+        ("tract-kernels", "quick", "tract.md", tract_kernels, None),
         ("pruned-v5-w0.25", "full", "pruning.md", pruned("v5 w0.25"), cpu),
         ("pruned-v8-w0.25", "full", "pruning.md", pruned("v8 w0.25"), cpu),
         ("ema-v5-w0.25", "full", "pruning.md", averaged("v5 w0.25"), cpu),

@@ -233,7 +233,23 @@ def latency(f):
                 f"{o('pruned-int8-all'):.3f}× without `narrow_float`); `detect-int8` with `narrow_float: 16` "
                 f"{o('int8-narrow'):.3f}×. tract against ONNX Runtime: "
                 + ", ".join(f"`{v}` {t(v):.2f}×" for v in ("f32", "pruned-f32", "int8", "pruned-int8")) + "."]
-    for g in f.get("gaps", []):
+    shipped = [v for v in ("f32", "pruned-f32") if (f"{v}-tract", "tract") in by]
+    if shipped:
+        # What a tract deployment runs (`--target tract`) against ONNX Runtime on the plain model.
+        out[-1] += (" In the forms `--target tract` ships, against ONNX Runtime on the plain models: " + ", ".join(
+            f"`{v}` {by[(v + '-tract', 'tract')]['median_ms'] / by[(v, 'ort')]['median_ms']:.2f}×" for v in shipped) + ".")
+        for v in shipped:
+            forms = f["tract_forms"][f"{v}-tract"]
+            tiled = [c["node"] for c in forms["conv_tiles"] if c["tiled"]]
+            bands = [d for d in forms["depthwise_split"] if "reason" not in d]
+            out += ["", f"`{v}-tract`: {len(bands)} depthwise convolution(s) split into bands, "
+                        f"{len(tiled)} of {len(forms['conv_tiles'])} direct convolutions shipped as column tiles"
+                        + (f" ({', '.join(f'`{n}`' for n in tiled)})" if tiled else "")
+                        + f"; fastest on {forms['fastest_threads']} thread(s)."]
+    gaps = f.get("gaps", [])
+    if any(g["variant"].endswith("-tract") for g in gaps):
+        gaps = [g for g in gaps if g["variant"].endswith("-tract")]
+    for g in gaps:
         out += ["", f"Where tract loses on `{g['variant']}` (layers joined by the model node each engine ran): kernels "
                     f"{g['tract_kernel_ms']:.2f} ms against ONNX Runtime's {g['ort_kernel_ms']:.2f}; in kernels with no "
                     f"counterpart, tract {g['tract_only_ms']:.2f} ms, ONNX Runtime {g['ort_only_ms']:.2f} ms (its layout "
@@ -249,7 +265,17 @@ def latency(f):
     return out
 
 
-BLOCKS = {"lossless": lossless, "latency-640": latency, "camera-640": camera, "pruned-640": pruned_640,
+def tract_kernels(f):
+    rows = [[f"`{r['file']}`", f"{r['op']} {r['channels']} channels at {r['width']}×{r['height']}, "
+             + ", ".join(f"{k} {v}" for k, v in r["attributes"].items()),
+             f"{r['macs'] / 1e6:.1f} M" if r["macs"] else "-", r["tract_kernels"], f"{r['tract_ms']:.2f}", f"{r['ort_ms']:.2f}",
+             f"{r['tract_ms'] / r['ort_ms']:.2f}×"] for r in f["rows"]]
+    return [f"Each layer alone after a 1×1 convolution from the 640×480 frame (random weights), both engines in one "
+            f"interleaved loop ({f['runs']} runs, {f['threads']} threads), the layer's own time from each engine's profile:", ""] + \
+        table(["model", "layer", "MACs", "tract kernels", "tract ms", "ONNX Runtime ms", "tract / ONNX Runtime"], rows)
+
+
+BLOCKS = {"lossless": lossless, "latency-640": latency, "tract-kernels": tract_kernels, "camera-640": camera, "pruned-640": pruned_640,
           "ship-640-v5": ship_640, "ship-640-v8": ship_640, "int8": int8, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
           "rebuild": rebuild, "recipe-bytes": recipe_bytes,
           "broken-builds": broken_builds, "suite": suite}
