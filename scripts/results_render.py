@@ -265,6 +265,16 @@ def latency(f):
     return out
 
 
+def latency_256(f):
+    rows = [[f"`{r['variant']}`: {r['what']}", r["engine"], f"{r['median_ms']:.2f}", f"{r['ratio']:.3f}×",
+             ", ".join(f"{o['op']} {o['share']:.0%}" for o in r["ops"][:3])] for r in f["rows"]]
+    by = {(r["variant"], r["engine"]): r for r in f["rows"]}
+    return [f"{f['model']}, {f['runs']} interleaved runs on {f['threads']} threads:", ""] + \
+        table(["variant", "engine", "ms", "against f32", "top operators"], rows) + \
+        ["", f"On ONNX Runtime `detect-int8` runs at {by[('int8', 'ort')]['ratio']:.3f}× of `detect-f32` "
+             f"(goal: no slower, ≤ 1), with `narrow_float: 16` at {by[('int8-narrow', 'ort')]['ratio']:.3f}×."]
+
+
 def tract_kernels(f):
     rows = [[f"`{r['file']}`", f"{r['op']} {r['channels']} channels at {r['width']}×{r['height']}, "
              + ", ".join(f"{k} {v}" for k, v in r["attributes"].items()),
@@ -275,7 +285,7 @@ def tract_kernels(f):
         table(["model", "layer", "MACs", "tract kernels", "tract ms", "ONNX Runtime ms", "tract / ONNX Runtime"], rows)
 
 
-BLOCKS = {"lossless": lossless, "latency-640": latency, "tract-kernels": tract_kernels, "camera-640": camera, "pruned-640": pruned_640,
+BLOCKS = {"lossless": lossless, "latency-640": latency, "tract-kernels": tract_kernels, "latency-256": latency_256, "camera-640": camera, "pruned-640": pruned_640,
           "ship-640-v5": ship_640, "ship-640-v8": ship_640, "int8": int8, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
           "rebuild": rebuild, "recipe-bytes": recipe_bytes,
           "broken-builds": broken_builds, "suite": suite}

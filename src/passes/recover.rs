@@ -60,6 +60,12 @@ pub struct Options {
     /// background's cells outnumber the objects' about a hundredfold and decide that mean,
     /// while mAP ranks the objects' scores. 0: the mean alone. YOLOv5 heads do not read it.
     pub class_foreground: f64,
+    /// Weight of the YOLOv5 box sides' absolute error beside the squared error of its
+    /// sigmoid box terms (the centre in grid cells, the size as a log ratio, weighted by the
+    /// teacher's objectness): a squared error's gradient fades as the boxes come close, where
+    /// mAP at IoU 0.95 still sees them, as with YOLOv8's box edges. 0: off. YOLOv8 heads do
+    /// not read it.
+    pub v5_box_edges: f64,
 }
 
 #[derive(serde::Deserialize, serde::Serialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -77,8 +83,8 @@ impl Options {
         if self.frames < self.schedule.batch {
             bail!("frames ({}) must be at least batch ({})", self.frames, self.schedule.batch);
         }
-        if ![self.box_edges, self.class_foreground].iter().all(|w| *w >= 0.0 && w.is_finite()) {
-            bail!("box_edges and class_foreground must be finite and 0 or more");
+        if ![self.box_edges, self.class_foreground, self.v5_box_edges].iter().all(|w| *w >= 0.0 && w.is_finite()) {
+            bail!("box_edges, class_foreground and v5_box_edges must be finite and 0 or more");
         }
         Ok(())
     }
@@ -86,7 +92,7 @@ impl Options {
 
 impl Default for Options {
     fn default() -> Self {
-        Options { schedule: Schedule::new(1000, 1e-3, 16), frames: 512, seed: 0, train: Train::All, box_edges: 16.0, class_foreground: 4.0 }
+        Options { schedule: Schedule::new(1000, 1e-3, 16), frames: 512, seed: 0, train: Train::All, box_edges: 16.0, class_foreground: 4.0, v5_box_edges: 0.0 }
     }
 }
 
@@ -134,7 +140,7 @@ impl Pass for Recover {
             Train::All => None,
             Train::Estimates => Some(present(model, &estimates)?),
         };
-        let opts = Training { schedule: o.schedule.clone(), seed: o.seed, window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground };
+        let opts = Training { schedule: o.schedule.clone(), seed: o.seed, window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground, v5_box_edges: o.v5_box_edges };
         let outcome = distill(&mut trained, &teacher, &kept, &train.iter().map(image).collect::<Vec<_>>(), &check.iter().map(image).collect::<Vec<_>>(), &opts)?;
         cx.record_training(&outcome);
         let after = errors(&trained)?;
@@ -157,6 +163,7 @@ impl Pass for Recover {
             "train": o.train,
             "box_edges": o.box_edges,
             "class_foreground": o.class_foreground,
+            "v5_box_edges": o.v5_box_edges,
             "frames": train.len(),
             "held_out_frames": check.len(),
             "calibration": source,

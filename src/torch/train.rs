@@ -28,6 +28,9 @@ pub struct Training {
     /// Weight of the YOLOv8 class scores' KL where the teacher sees an object, beside the
     /// plain mean over every cell (0: the mean alone); `train` puts it on every class head.
     pub class_foreground: f64,
+    /// Weight of the YOLOv5 box sides' absolute error beside the squared error of its box
+    /// terms (0: off); `train` puts it on every YOLOv5 head that carries boxes.
+    pub v5_box_edges: f64,
 }
 
 /// What one distillation did, from the worker's own account.
@@ -134,13 +137,15 @@ pub struct Job {
     pub label: &'static str,
 }
 
-/// Adds the YOLOv8 box edges' own term, at `edges`, to its box heads, and the class scores'
-/// foreground term, at `foreground`, to its class heads.
-fn weigh_terms(heads: &mut [serde_json::Value], edges: f64, foreground: f64) {
+/// Adds the YOLOv8 box edges' own term, at `edges`, to its box heads, the class scores'
+/// foreground term, at `foreground`, to its class heads, and the YOLOv5 box sides' term, at
+/// `v5_edges`, to the YOLOv5 heads that carry boxes.
+fn weigh_terms(heads: &mut [serde_json::Value], edges: f64, foreground: f64, v5_edges: f64) {
     for h in heads.iter_mut() {
         match h["kind"].as_str() {
             Some("v8box") => h["edge_weight"] = serde_json::json!(edges),
             Some("v8cls") => h["foreground"] = serde_json::json!(foreground),
+            Some("v5" | "v5box") if v5_edges > 0.0 => h["edge_weight"] = serde_json::json!(v5_edges),
             _ => {}
         }
     }
@@ -150,7 +155,7 @@ fn weigh_terms(heads: &mut [serde_json::Value], edges: f64, foreground: f64) {
 /// returns the worker's account and, when asked, its outputs on `held_out` (one tensor per
 /// graph output, frames stacked).
 pub fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Tensor], held_out: &[Tensor], o: &Training, mut job: Job) -> Result<(Outcome, Vec<Tensor>)> {
-    weigh_terms(&mut job.heads, o.box_edges, o.class_foreground);
+    weigh_terms(&mut job.heads, o.box_edges, o.class_foreground, o.v5_box_edges);
     let s = &o.schedule;
     let work = tempfile::tempdir()?;
     let dir = work.path();
@@ -282,12 +287,15 @@ mod tests {
 
     #[test]
     fn each_yolov8_head_gets_its_own_term() {
-        let mut heads = vec![serde_json::json!({"kind": "v8box"}), serde_json::json!({"kind": "v8cls"}), serde_json::json!({"kind": "v5"})];
-        weigh_terms(&mut heads, 4.0, 2.0);
+        let mut heads = vec![serde_json::json!({"kind": "v8box"}), serde_json::json!({"kind": "v8cls"}), serde_json::json!({"kind": "v5"}), serde_json::json!({"kind": "v5scores"})];
+        weigh_terms(&mut heads, 4.0, 2.0, 0.0);
         assert_eq!(heads[0]["edge_weight"], 4.0);
         assert_eq!(heads[1]["foreground"], 2.0);
         assert!(heads[0].get("foreground").is_none() && heads[1].get("edge_weight").is_none());
         assert!(heads[2].get("edge_weight").is_none() && heads[2].get("foreground").is_none());
+        weigh_terms(&mut heads, 4.0, 2.0, 8.0);
+        assert_eq!(heads[2]["edge_weight"], 8.0);
+        assert!(heads[3].get("edge_weight").is_none());
     }
 
     /// A GPU's training, or one the time cap stopped, is marked not reproducible; a whole CPU

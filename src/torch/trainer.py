@@ -41,6 +41,8 @@ def head_loss(s, t, spec):
         s, t = s.view(s.shape[0], na, no, *s.shape[2:]), t.view(t.shape[0], na, no, *t.shape[2:])
         obj = torch.sigmoid(t[:, :, 4:5])
         box = (obj * (torch.sigmoid(s[:, :, :4]) - torch.sigmoid(t[:, :, :4])) ** 2).sum() / batch_total(obj) / 4
+        if spec.get("edge_weight"):
+            box = box + spec["edge_weight"] / 20.0 * v5_edges(s[:, :, :4], t[:, :, :4], obj)
         return box * 20.0 + soft_bce(s[:, :, 4:], t[:, :, 4:])
     if kind in ("v8cls", "v5scores"):
         kl = soft_bce_map(s, t)
@@ -59,7 +61,10 @@ def head_loss(s, t, spec):
         s, t = s.view(b, na, 4, h, w), t.view(b, na, 4, h, w)
         obj = spec.get("objectness")
         obj = torch.ones_like(t[:, :, :1]) if obj is None else obj
-        return (obj * (torch.sigmoid(s) - torch.sigmoid(t)) ** 2).sum() / batch_total(obj) / 4 * 20.0
+        loss = (obj * (torch.sigmoid(s) - torch.sigmoid(t)) ** 2).sum() / batch_total(obj) / 4 * 20.0
+        if spec.get("edge_weight"):
+            loss = loss + spec["edge_weight"] * v5_edges(s, t, obj)
+        return loss
     if kind == "v8box":
         r = spec["reg_max"]
         b, _, h, w = s.shape
@@ -76,6 +81,15 @@ def head_loss(s, t, spec):
             loss = loss + spec["edge_weight"] * (edge * wgt).sum() / batch_total(wgt)
         return loss
     raise ValueError(kind)
+
+
+def v5_edges(s, t, obj):
+    """YOLOv5 box logits' absolute error ([B, anchors, 4, H, W], weighted by `obj`): the centre
+    (2 sigmoid - 0.5 cells from the cell) in grid cells, the size ((2 sigmoid)^2 anchors) as
+    a log ratio, so a side's error counts the same at any distance from the teacher's."""
+    centre = 2 * (torch.sigmoid(s[:, :, :2]) - torch.sigmoid(t[:, :, :2])).abs().sum(2, keepdim=True)
+    size = 2 * (F.logsigmoid(s[:, :, 2:4]) - F.logsigmoid(t[:, :, 2:4])).abs().sum(2, keepdim=True)
+    return (obj * (centre + size)).sum() / batch_total(obj) / 4
 
 
 def soft_bce(s, t):

@@ -79,7 +79,7 @@ fn recovery_improves_agreement_and_keeps_the_nodes() {
     let prune = "{prune: {ratio: 0.5, compensate: none}}";
     let (plain, recovered) = (dir.path().join("plain.yaml"), dir.path().join("recovered.yaml"));
     std::fs::write(&plain, format!("name: p\npasses: [{LOSSLESS}, {prune}, cleanup]\n")).unwrap();
-    std::fs::write(&recovered, format!("name: r\npasses: [{LOSSLESS}, {prune}, {{recover: {{steps: 72, frames: 96, batch: 8, ema: 0.9}}}}, cleanup]\n")).unwrap();
+    std::fs::write(&recovered, format!("name: r\npasses: [{LOSSLESS}, {prune}, {{recover: {{steps: 72, frames: 96, batch: 8, ema: 0.9, v5_box_edges: 8}}}}, cleanup]\n")).unwrap();
     let model = "models/trained/pdinet_v5_tiny_trained.onnx";
     compile(model, plain.to_str().unwrap(), &dir.path().join("plain"));
     let report = compile(model, recovered.to_str().unwrap(), &dir.path().join("recovered"));
@@ -97,6 +97,7 @@ fn recovery_improves_agreement_and_keeps_the_nodes() {
     assert_eq!(ema["kept"], average < last, "{ema}");
     assert_eq!(r["training"]["held_out_loss_after"].as_f64().unwrap(), last.min(average), "{ema}");
     assert!(r["training"]["steps"].as_u64().unwrap() > 0 && r["training"]["frames_per_second"].as_f64().unwrap() > 0.0);
+    assert_eq!(r["v5_box_edges"], 8.0, "the YOLOv5 box sides' term trained with the rest");
     let nodes = |p: &str| load(&dir.path().join(p).join("model.onnx")).graph.unwrap().node;
     assert_eq!(nodes("plain"), nodes("recovered"), "recovery changes weights only");
 }
@@ -118,8 +119,8 @@ fn recover_needs_a_prune_pass() {
 #[test]
 fn impossible_recover_settings_are_refused() {
     let dir = tempfile::tempdir().unwrap();
-    let weights = "box_edges and class_foreground must be finite and 0 or more";
-    for (setting, needle) in [("box_edges: -1", weights), ("box_edges: .inf", weights), ("class_foreground: -2", weights), ("class_foreground: .nan", weights), ("lr: .nan", "lr must be a positive number"), ("batch: 0", "steps and batch must be at least 1"), ("devices: 0", "devices must be 1 to 64"), ("{devices: 3, batch: 8}", "batch (8) must divide among the devices (3)")] {
+    let weights = "box_edges, class_foreground and v5_box_edges must be finite and 0 or more";
+    for (setting, needle) in [("box_edges: -1", weights), ("v5_box_edges: -0.5", weights), ("box_edges: .inf", weights), ("class_foreground: -2", weights), ("class_foreground: .nan", weights), ("lr: .nan", "lr must be a positive number"), ("batch: 0", "steps and batch must be at least 1"), ("devices: 0", "devices must be 1 to 64"), ("{devices: 3, batch: 8}", "batch (8) must divide among the devices (3)")] {
         let recipe = dir.path().join("r.yaml");
         let setting = setting.trim_start_matches('{').trim_end_matches('}');
         std::fs::write(&recipe, format!("name: r\npasses: [{LOSSLESS}, {{prune: {{ratio: 0.5, compensate: none}}}}, {{recover: {{{setting}}}}}, cleanup]\n")).unwrap();
