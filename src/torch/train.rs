@@ -286,7 +286,7 @@ mod tests {
     use super::{weigh_terms, Outcome};
 
     #[test]
-    fn each_yolov8_head_gets_its_own_term() {
+    fn each_head_kind_gets_its_own_terms() {
         let mut heads = vec![serde_json::json!({"kind": "v8box"}), serde_json::json!({"kind": "v8cls"}), serde_json::json!({"kind": "v5"}), serde_json::json!({"kind": "v5scores"})];
         weigh_terms(&mut heads, 4.0, 2.0, 0.0);
         assert_eq!(heads[0]["edge_weight"], 4.0);
