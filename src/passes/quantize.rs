@@ -62,8 +62,9 @@ pub struct Options {
     /// Nodes (or their output values) to leave in float.
     pub keep_float: Vec<String>,
     /// Convolutions with fewer output channels per group than this stay float, with the
-    /// element-wise nodes that read only them (`quant::narrow`): ONNX Runtime's integer
-    /// convolution is slower than its float one there. 0: every layer is a candidate.
+    /// element-wise nodes that read only them and the nodes that read them directly
+    /// (`quant::narrow`): ONNX Runtime's integer convolution is slower than its float one
+    /// there. 0: every layer is a candidate.
     pub narrow_float: usize,
     /// After mixed precision: keep float the heavy convolutions ONNX Runtime runs the model
     /// faster without quantizing, timed on this machine (`quant::speed`). The choice follows the

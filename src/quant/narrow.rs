@@ -25,7 +25,7 @@
 
 use crate::ir::Graph;
 use crate::onnx::attr;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 /// Nodes that stay float with the narrow convolutions: node name -> why.
 pub fn narrow_float(g: &Graph, min_channels: usize) -> BTreeMap<String, String> {
@@ -55,7 +55,7 @@ pub fn narrow_float(g: &Graph, min_channels: usize) -> BTreeMap<String, String> 
     }
     // The region's direct readers, one step (a float node's readers may be quantized again:
     // their QuantizeLinear then follows a node ONNX Runtime does not fuse into an integer one).
-    let region: Vec<String> = out.keys().cloned().collect();
+    let region: BTreeSet<String> = out.keys().cloned().collect();
     for &i in &g.order {
         let n = g.node(i);
         if out.contains_key(&n.name) {
