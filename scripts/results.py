@@ -110,6 +110,16 @@ def pass_of(rep, name):
     return next(p for p in rep["passes"] if p["pass"] == name)
 
 
+def profiled(c, path, engine):
+    """`profile --json`'s row of the model at `path` on `engine`."""
+    return next(r for r in c["rows"] if r["model"] == str(path) and r["engine"] == engine)
+
+
+def gap_of(c, path):
+    """`profile --json`'s table of where tract loses to ONNX Runtime on the model at `path`."""
+    return next(g["gap"] for g in c["gaps"] if g["model"] == str(path))
+
+
 def verify(ctx, reference, candidate):
     v, _ = ctx.json([BIN, "verify", "--reference", reference, "--candidate", candidate,
                      "--data", EVAL, "--psf", PSF, "--runs", 0])
@@ -586,7 +596,7 @@ def latency_640(ctx):
     c, _ = ctx.json([BIN, "profile", *[ctx.dir / name / "model.onnx" for name, *_ in plan], "--psf", PSF, "--runs", 30])
     rows = []
     for (name, what, *_), engine in [(p, e) for p in plan for e in ("ort", "tract")]:
-        r = next(r for r in c["rows"] if r["model"] == str(ctx.dir / name / "model.onnx") and r["engine"] == engine)
+        r = profiled(c, ctx.dir / name / "model.onnx", engine)
         prof = r["profile"]
         rows.append({
             "variant": name, "what": what, "engine": engine, "median_ms": r["median_ms"], "ratio": r["ratio"],
@@ -598,7 +608,7 @@ def latency_640(ctx):
         })
     gaps = []
     for name in ("f32", "pruned-f32", "f32-tract", "pruned-f32-tract"):
-        g = next(g["gap"] for g in c["gaps"] if g["model"] == str(ctx.dir / name / "model.onnx"))
+        g = gap_of(c, ctx.dir / name / "model.onnx")
         gaps.append({"variant": name, **{k: g[k] for k in ("ort_kernel_ms", "tract_kernel_ms", "ort_only_ms", "tract_only_ms")},
                      "by_tract_op": g["by_tract_op"][:6], "layers": g["layers"][:4]})
     tiles = {name: json.loads((ctx.dir / name / "report.json").read_text())["target_check"] for name in ("f32-tract", "pruned-f32-tract")}
@@ -619,7 +629,7 @@ def latency_256(ctx):
     c, _ = ctx.json([BIN, "profile", *[ctx.dir / name / "model.onnx" for name, *_ in plan], "--psf", PSF, "--runs", 200])
     rows = []
     for (name, what, *_), engine in [(p, e) for p in plan for e in ("ort", "tract")]:
-        r = next(r for r in c["rows"] if r["model"] == str(ctx.dir / name / "model.onnx") and r["engine"] == engine)
+        r = profiled(c, ctx.dir / name / "model.onnx", engine)
         rows.append({"variant": name, "what": what, "engine": engine, "median_ms": r["median_ms"], "ratio": r["ratio"],
                      "ops": [{k: o[k] for k in ("op", "kernels", "ms", "share")} for o in r["profile"]["by_op"][:4]]})
     return {"model": "v5 w0.25 (trained) at 256x192", "runs": c["runs"], "threads": c["threads"], "rows": rows}
@@ -673,9 +683,8 @@ def tract_kernels(ctx):
     c, _ = ctx.json([BIN, "profile", *paths, "--runs", 30])
     rows = []
     for (name, channels, stride, op, attrs), path in zip(KERNELS, paths):
-        g = next(g["gap"] for g in c["gaps"] if g["model"] == str(path))
-        layer = next(l for l in g["layers"] if l["node"] == f"/case/{op}")
-        whole = {e: next(r["median_ms"] for r in c["rows"] if r["model"] == str(path) and r["engine"] == e) for e in ("ort", "tract")}
+        layer = next(l for l in gap_of(c, path)["layers"] if l["node"] == f"/case/{op}")
+        whole = {e: profiled(c, path, e)["median_ms"] for e in ("ort", "tract")}
         rows.append({"model": name, "file": f"{name}.onnx", "op": op, "attributes": attrs, "channels": channels,
                      "height": 480 // stride, "width": 640 // stride, "macs": layer["macs"],
                      "tract_kernels": layer["tract_op"], "ort_kernels": layer["ort_op"],
