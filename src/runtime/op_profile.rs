@@ -10,7 +10,8 @@
 //! ORT renames what it runs: a fused QDQ convolution keeps the Conv's name (its layout pass
 //! appends `_token_<n>`, undone by [`super::ort_profile::KernelTime::source`]); an NCHWc
 //! convolution is named after its output value with `_nchwc` appended, and that value may be
-//! the output of an activation ORT fused into it. tract appends suffixes to the names it
+//! the output of an activation ORT fused into it; a Conv fused with its BatchNormalization and
+//! activation may carry the name of either follower. tract appends suffixes to the names it
 //! keeps (`.conv`, `.bias`, `#0`). Each is traced back to the model's node; what matches none
 //! (a reorder ORT inserted, a tract reshape) keeps its own name and counts under its op.
 
@@ -118,6 +119,10 @@ struct Costs {
     by_node: HashMap<String, (u64, u64)>,
     /// Value name -> the node whose cost it stands for (the convolution under a fused activation).
     by_value: HashMap<String, String>,
+    /// A normalization or activation that ONNX Runtime fuses into the convolution before it ->
+    /// that convolution: the fused kernel may carry the follower's name (Conv, BN, Relu runs
+    /// as one Conv kernel named after the Relu).
+    fused: HashMap<String, String>,
 }
 
 impl Costs {
@@ -132,27 +137,37 @@ impl Costs {
         };
         let mut by_node = HashMap::new();
         let mut by_value = HashMap::new();
+        let mut fused = HashMap::new();
         for &i in &g.order {
             let n = g.node(i);
             let moved: u64 = n.input.iter().chain(&n.output).filter(|v| !v.is_empty()).map(|v| bytes_of(v)).sum();
             by_node.insert(n.name.clone(), (cost::macs(n, inf), moved));
-            // An activation's output names the convolution ORT fused it into, when it is
-            // the convolution's only reader.
+            // A normalization or activation stands for the convolution ORT fuses it into,
+            // when it is the only reader of that convolution (or of its normalization).
             let source = match g.producer_of(n.input.first().map_or("", |s| s.as_str())) {
-                Some(p) if matches!(n.op_type.as_str(), "Relu" | "Sigmoid" | "Clip" | "LeakyRelu" | "HardSigmoid" | "Tanh")
-                    && by_node.get(&p.name).is_some_and(|c: &(u64, u64)| c.0 > 0) && g.consumers_of(&p.output[0]).len() == 1 => by_value.get(&p.output[0]).cloned().unwrap_or_else(|| p.name.clone()),
+                Some(p) if matches!(n.op_type.as_str(), "BatchNormalization" | "Relu" | "Sigmoid" | "Clip" | "LeakyRelu" | "HardSigmoid" | "Tanh")
+                    && g.consumers_of(&p.output[0]).len() == 1 =>
+                {
+                    let conv = by_value.get(&p.output[0]).cloned().unwrap_or_else(|| p.name.clone());
+                    if by_node.get(&conv).is_some_and(|c: &(u64, u64)| c.0 > 0) {
+                        fused.insert(n.name.clone(), conv.clone());
+                        conv
+                    } else {
+                        n.name.clone()
+                    }
+                }
                 _ => n.name.clone(),
             };
             for o in &n.output {
                 by_value.insert(o.clone(), source.clone());
             }
         }
-        Costs { by_node, by_value }
+        Costs { by_node, by_value, fused }
     }
 
     /// The model node an engine's kernel name stands for.
     fn node_of(&self, name: &str) -> Option<&str> {
-        let known = |n: &str| self.by_node.get_key_value(unsplit(n)).map(|(k, _)| k.as_str());
+        let known = |n: &str| self.by_node.get_key_value(unsplit(n)).map(|(k, _)| self.fused.get(k).map_or(k.as_str(), |c| c.as_str()));
         if let Some(k) = known(name) {
             return Some(k);
         }
@@ -285,14 +300,16 @@ mod tests {
 
     fn costs() -> Costs {
         let by_node = [("/a/Conv", (1000, 10)), ("/a/Relu", (0, 8)), ("/b/body.0/Conv", (500, 4))].into_iter().map(|(k, v)| (k.to_string(), v)).collect();
-        let by_value = [("/a/Relu_output_0", "/a/Conv"), ("/a/Conv_output_0", "/a/Conv")].into_iter().map(|(k, v)| (k.to_string(), v.to_string())).collect();
-        Costs { by_node, by_value }
+        let pairs = |p: &[(&str, &str)]| p.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect();
+        let by_value = pairs(&[("/a/Relu_output_0", "/a/Conv"), ("/a/Conv_output_0", "/a/Conv")]);
+        Costs { by_node, by_value, fused: pairs(&[("/a/Relu", "/a/Conv")]) }
     }
 
     #[test]
     fn engine_names_lead_to_model_nodes() {
         let c = costs();
         assert_eq!(c.node_of("/a/Conv"), Some("/a/Conv"));
+        assert_eq!(c.node_of("/a/Relu"), Some("/a/Conv"), "a fused kernel named after its activation");
         assert_eq!(c.node_of("/a/Relu_output_0_nchwc"), Some("/a/Conv"), "an NCHWc convolution named after its fused activation's output");
         assert_eq!(c.node_of("/b/body.0/Conv.conv#1"), Some("/b/body.0/Conv"), "tract's suffixes");
         assert_eq!(c.node_of("/b/body.0/Conv.bias"), Some("/b/body.0/Conv"));
@@ -301,6 +318,31 @@ mod tests {
         assert_eq!(c.node_of("/a/Conv_bandx"), None);
         assert_eq!(c.node_of("ReorderOutput_3"), None);
         assert_eq!(c.node_of("/b/body"), None, "a prefix of a name is not the node");
+    }
+
+    /// Conv, BatchNormalization, Relu runs as one ORT kernel named after the BN or the Relu;
+    /// a SiLU's Sigmoid shares the convolution's output with its Mul and is not fused.
+    #[test]
+    fn a_convolutions_fused_followers_stand_for_it() {
+        use crate::onnx::{edit::{add_constant, tensor_value_info}, proto::{GraphProto, NodeProto}};
+        use crate::tensor::DType;
+        let node = |name: &str, op: &str, i: &[&str], o: &str| NodeProto { name: name.into(), op_type: op.into(), input: i.iter().map(|s| s.to_string()).collect(), output: vec![o.into()], ..Default::default() };
+        let mut g = GraphProto { input: vec![tensor_value_info("x", DType::F32, &[1, 2, 4, 4])], output: vec![tensor_value_info("y", DType::F32, &[1, 2, 4, 4]), tensor_value_info("z", DType::F32, &[1, 2, 4, 4])], ..Default::default() };
+        let w = add_constant(&mut g, "w", &Tensor::f32(vec![2, 2, 1, 1], vec![1.0; 4]));
+        let v = add_constant(&mut g, "v", &Tensor::f32(vec![2], vec![1.0; 2]));
+        g.node = vec![
+            node("conv", "Conv", &["x", &w], "c"),
+            node("bn", "BatchNormalization", &["c", &v, &v, &v, &v], "b"),
+            node("relu", "Relu", &["b"], "y"),
+            node("conv2", "Conv", &["y", &w], "c2"),
+            node("sig", "Sigmoid", &["c2"], "s"),
+            node("mul", "Mul", &["c2", "s"], "z"),
+        ];
+        let graph = Graph::build(&g).unwrap();
+        let c = Costs::of(&graph, &infer(&graph));
+        assert_eq!((c.node_of("relu"), c.node_of("bn"), c.node_of("conv")), (Some("conv"), Some("conv"), Some("conv")));
+        assert_eq!(c.node_of("y_nchwc"), Some("conv"));
+        assert_eq!((c.node_of("sig"), c.node_of("mul")), (Some("sig"), Some("mul")));
     }
 
     #[test]
