@@ -335,9 +335,27 @@ DIRECTIONS = {
                PRUNE + RECOVER.replace("lr: 2.0e-3", "lr: 3.0e-3")),
     "v5-edges": ("the YOLOv5 box sides' absolute error in recovery (`v5_box_edges: 16`), as YOLOv8's box edges",
                  PRUNE + RECOVER.replace("frames: 2048}", "frames: 2048, v5_box_edges: 16}")),
+    "one-allocation": ("two cuts along one allocation: the shipped allocation to 28% of the MACs, measured once on "
+                       "the unpruned model; each group keeps the square root of its final share, 3000 steps of "
+                       "recovery, then the same ratios again, 5000 steps",
+                       lambda ctx, text, path: halfway(ctx, text, path) + RECOVER.replace("8000", "3000")
+                       + halfway(ctx, text, path) + RECOVER.replace("8000", "5000")),
 }
 # The heads a direction changes anything on (the rest: both).
 ONLY = {"v5-edges": ("v5 w0.25",)}
+
+
+def halfway(ctx, text, path):
+    """A prune pass cutting each group of `path` halfway, in the keep fraction, to the share the
+    shipped allocation chooses for it (measured once, by the recipe's prune pass alone)."""
+    out = ctx.dir / "allocation"
+    if not (out / "report.json").exists():
+        alone = ctx.dir / "allocation.yaml"
+        alone.write_text(text.replace(PRUNE + RECOVER, PRUNE))
+        compile_(ctx, path, alone, out)
+    groups = pass_of(report(out), "prune")["details"]["sensitivity"]["groups"]
+    ratios = ", ".join(f'"{g["anchor"]}": {1 - (1 - g["chosen"]) ** 0.5:.6f}' for g in groups if g["chosen"] > 0)
+    return PRUNE.replace("target: {macs: 0.28}", f"ratios: {{{ratios}}}")
 
 
 def direction(model, key):
@@ -348,7 +366,7 @@ def direction(model, key):
             raise Failed("detect-pruned-f32's prune and recover passes are not the ones the directions edit")
         path = MODELS[model]
         recipe = ctx.dir / f"{key}.yaml"
-        recipe.write_text(text.replace(PRUNE + RECOVER, passes))
+        recipe.write_text(text.replace(PRUNE + RECOVER, passes(ctx, text, path) if callable(passes) else passes))
         f32 = ctx.dir / "f32"
         rep = compile_(ctx, path, recipe, f32)
         q = compile_(ctx, f32 / "model.onnx", own_passes(ctx, "detect-pruned-int8"), ctx.dir / "int8")
