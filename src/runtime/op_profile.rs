@@ -144,20 +144,15 @@ impl Costs {
             by_node.insert(n.name.clone(), (cost::macs(n, inf), moved));
             // A normalization or activation stands for the convolution ORT fuses it into,
             // when it is the only reader of that convolution (or of its normalization).
-            let source = match g.producer_of(n.input.first().map_or("", |s| s.as_str())) {
-                Some(p) if matches!(n.op_type.as_str(), "BatchNormalization" | "Relu" | "Sigmoid" | "Clip" | "LeakyRelu" | "HardSigmoid" | "Tanh")
-                    && g.consumers_of(&p.output[0]).len() == 1 =>
-                {
-                    let conv = by_value.get(&p.output[0]).cloned().unwrap_or_else(|| p.name.clone());
-                    if by_node.get(&conv).is_some_and(|c: &(u64, u64)| c.0 > 0) {
-                        fused.insert(n.name.clone(), conv.clone());
-                        conv
-                    } else {
-                        n.name.clone()
-                    }
-                }
-                _ => n.name.clone(),
-            };
+            let conv = g
+                .producer_of(n.input.first().map_or("", |s| s.as_str()))
+                .filter(|p| matches!(n.op_type.as_str(), "BatchNormalization" | "Relu" | "Sigmoid" | "Clip" | "LeakyRelu" | "HardSigmoid" | "Tanh") && g.consumers_of(&p.output[0]).len() == 1)
+                .map(|p| by_value.get(&p.output[0]).cloned().unwrap_or_else(|| p.name.clone()))
+                .filter(|c| by_node.get(c).is_some_and(|c: &(u64, u64)| c.0 > 0));
+            if let Some(c) = &conv {
+                fused.insert(n.name.clone(), c.clone());
+            }
+            let source = conv.unwrap_or_else(|| n.name.clone());
             for o in &n.output {
                 by_value.insert(o.clone(), source.clone());
             }
