@@ -365,8 +365,7 @@ DIRECTIONS = {
     "one-allocation": ("two cuts along one allocation: the shipped allocation to 28% of the MACs, measured once on "
                        "the unpruned model; each group keeps the square root of its final share, 3000 steps of "
                        "recovery, then the same ratios again, 5000 steps",
-                       lambda ctx, text, path: halfway(ctx, text, path) + RECOVER.replace("8000", "3000")
-                       + halfway(ctx, text, path) + RECOVER.replace("8000", "5000")),
+                       lambda ctx, text, path: two_cuts(halfway(ctx, text, path))),
 }
 # The heads a direction changes anything on (the rest: both).
 ONLY = {"v5-edges": ("v5 w0.25",)}
@@ -374,15 +373,17 @@ ONLY = {"v5-edges": ("v5 w0.25",)}
 
 def halfway(ctx, text, path):
     """A prune pass cutting each group of `path` halfway, in the keep fraction, to the share the
-    shipped allocation chooses for it (measured once, by the recipe's prune pass alone)."""
-    out = ctx.dir / "allocation"
-    if not (out / "report.json").exists():
-        alone = ctx.dir / "allocation.yaml"
-        alone.write_text(text.replace(PRUNE + RECOVER, PRUNE))
-        compile_(ctx, path, alone, out)
-    groups = pass_of(report(out), "prune")["details"]["sensitivity"]["groups"]
+    shipped allocation chooses for it (measured by the recipe's prune pass alone)."""
+    alone = ctx.dir / "allocation.yaml"
+    alone.write_text(text.replace(PRUNE + RECOVER, PRUNE))
+    groups = pass_of(compile_(ctx, path, alone, ctx.dir / "allocation"), "prune")["details"]["sensitivity"]["groups"]
     ratios = ", ".join(f'"{g["anchor"]}": {1 - (1 - g["chosen"]) ** 0.5:.6f}' for g in groups if g["chosen"] > 0)
     return PRUNE.replace("target: {macs: 0.28}", f"ratios: {{{ratios}}}")
+
+
+def two_cuts(cut):
+    """`cut` twice, with 3000 and then 5000 steps of recovery after it."""
+    return cut + RECOVER.replace("8000", "3000") + cut + RECOVER.replace("8000", "5000")
 
 
 def direction(model, key):
