@@ -15,7 +15,7 @@
 //! values are kept only when they agree better with the teacher's detections on held-out
 //! frames (mAP@0.5:0.95 against its confident boxes; on a tie, under a scene, or without a
 //! decodable head: when they bring the worst output group closer to the teacher's).
-//! Reports: the loss per epoch, device, steps, frames/s and seconds, the crop, the box edges' weight,
+//! Reports: the loss per epoch, device, steps, frames/s and seconds, the crop, the box terms' weights,
 //! the rel L2 per output group and the detection agreement against the teacher on held-out
 //! frames before and after.
 
@@ -67,6 +67,12 @@ pub struct Options {
     /// pruned width-0.25 v5's recovered mAP@0.5:0.95 rose with it from 0.897x to 0.982x of
     /// the unpruned model's in the same 8000 steps. YOLOv8 heads do not read it.
     pub v5_box_edges: f64,
+    /// Weight of 1 − IoU between the student's and the teacher's YOLOv8 boxes (each side's
+    /// expected distance; both boxes share the cell's anchor point), weighted by the
+    /// teacher's best class score, beside the box edges: an edge's error in bins costs a
+    /// small box more IoU than a large one, and the IoU counts it so, as the detector's own
+    /// loss does. 0: off. YOLOv5 heads do not read it.
+    pub box_iou: f64,
 }
 
 #[derive(serde::Deserialize, serde::Serialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -84,8 +90,8 @@ impl Options {
         if self.frames < self.schedule.batch {
             bail!("frames ({}) must be at least batch ({})", self.frames, self.schedule.batch);
         }
-        if ![self.box_edges, self.class_foreground, self.v5_box_edges].iter().all(|w| *w >= 0.0 && w.is_finite()) {
-            bail!("box_edges, class_foreground and v5_box_edges must be finite and 0 or more");
+        if ![self.box_edges, self.class_foreground, self.v5_box_edges, self.box_iou].iter().all(|w| *w >= 0.0 && w.is_finite()) {
+            bail!("box_edges, class_foreground, v5_box_edges and box_iou must be finite and 0 or more");
         }
         Ok(())
     }
@@ -93,7 +99,7 @@ impl Options {
 
 impl Default for Options {
     fn default() -> Self {
-        Options { schedule: Schedule::new(1000, 1e-3, 16), frames: 512, seed: 0, train: Train::All, box_edges: 16.0, class_foreground: 4.0, v5_box_edges: 16.0 }
+        Options { schedule: Schedule::new(1000, 1e-3, 16), frames: 512, seed: 0, train: Train::All, box_edges: 16.0, class_foreground: 4.0, v5_box_edges: 16.0, box_iou: 0.0 }
     }
 }
 
@@ -141,7 +147,7 @@ impl Pass for Recover {
             Train::All => None,
             Train::Estimates => Some(present(model, &estimates)?),
         };
-        let opts = Training { schedule: o.schedule.clone(), seed: o.seed, window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground, v5_box_edges: o.v5_box_edges };
+        let opts = Training { schedule: o.schedule.clone(), seed: o.seed, window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground, v5_box_edges: o.v5_box_edges, box_iou: o.box_iou };
         let outcome = distill(&mut trained, &teacher, &kept, &train.iter().map(image).collect::<Vec<_>>(), &check.iter().map(image).collect::<Vec<_>>(), &opts)?;
         cx.record_training(&outcome);
         let after = errors(&trained)?;
@@ -165,6 +171,7 @@ impl Pass for Recover {
             "box_edges": o.box_edges,
             "class_foreground": o.class_foreground,
             "v5_box_edges": o.v5_box_edges,
+            "box_iou": o.box_iou,
             "frames": train.len(),
             "held_out_frames": check.len(),
             "calibration": source,

@@ -31,6 +31,10 @@ pub struct Training {
     /// Weight of the YOLOv5 box sides' absolute error beside the squared error of its box
     /// terms (0: off); `train` puts it on every YOLOv5 head that carries boxes.
     pub v5_box_edges: f64,
+    /// Weight of 1 − IoU between the student's and the teacher's YOLOv8 boxes (each side's
+    /// expected distance, the boxes sharing their anchor point) beside the box edges (0:
+    /// off); `train` puts it on every box head it is given.
+    pub box_iou: f64,
 }
 
 /// What one distillation did, from the worker's own account.
@@ -137,15 +141,20 @@ pub struct Job {
     pub label: &'static str,
 }
 
-/// Adds the YOLOv8 box edges' own term, at `edges`, to its box heads, the class scores'
-/// foreground term, at `foreground`, to its class heads, and the YOLOv5 box sides' term, at
-/// `v5_edges`, to the YOLOv5 heads that carry boxes.
-fn weigh_terms(heads: &mut [serde_json::Value], edges: f64, foreground: f64, v5_edges: f64) {
+/// Adds `o`'s terms to the heads that read them: the YOLOv8 box edges and box IoU to its box
+/// heads, the class scores' foreground term to its class heads, and the YOLOv5 box sides'
+/// term to the YOLOv5 heads that carry boxes.
+fn weigh_terms(heads: &mut [serde_json::Value], o: &Training) {
     for h in heads.iter_mut() {
         match h["kind"].as_str() {
-            Some("v8box") => h["edge_weight"] = serde_json::json!(edges),
-            Some("v8cls") => h["foreground"] = serde_json::json!(foreground),
-            Some("v5" | "v5box") if v5_edges > 0.0 => h["edge_weight"] = serde_json::json!(v5_edges),
+            Some("v8box") => {
+                h["edge_weight"] = serde_json::json!(o.box_edges);
+                if o.box_iou > 0.0 {
+                    h["iou_weight"] = serde_json::json!(o.box_iou);
+                }
+            }
+            Some("v8cls") => h["foreground"] = serde_json::json!(o.class_foreground),
+            Some("v5" | "v5box") if o.v5_box_edges > 0.0 => h["edge_weight"] = serde_json::json!(o.v5_box_edges),
             _ => {}
         }
     }
@@ -155,7 +164,7 @@ fn weigh_terms(heads: &mut [serde_json::Value], edges: f64, foreground: f64, v5_
 /// returns the worker's account and, when asked, its outputs on `held_out` (one tensor per
 /// graph output, frames stacked).
 pub fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Tensor], held_out: &[Tensor], o: &Training, mut job: Job) -> Result<(Outcome, Vec<Tensor>)> {
-    weigh_terms(&mut job.heads, o.box_edges, o.class_foreground, o.v5_box_edges);
+    weigh_terms(&mut job.heads, o);
     let s = &o.schedule;
     let work = tempfile::tempdir()?;
     let dir = work.path();
@@ -283,19 +292,23 @@ pub fn write_frames(frames: &[Tensor], path: &Path) -> Result<()> {
 
 #[cfg(test)]
 mod tests {
-    use super::{weigh_terms, Outcome};
+    use super::{weigh_terms, Outcome, Training};
+    use crate::torch::schedule::Schedule;
 
     #[test]
     fn each_head_kind_gets_its_own_terms() {
+        let terms = |v5_box_edges, box_iou| Training { schedule: Schedule::new(1, 1e-3, 1), seed: 0, window: None, trainable: None, box_edges: 4.0, class_foreground: 2.0, v5_box_edges, box_iou };
         let mut heads = vec![serde_json::json!({"kind": "v8box"}), serde_json::json!({"kind": "v8cls"}), serde_json::json!({"kind": "v5"}), serde_json::json!({"kind": "v5scores"})];
-        weigh_terms(&mut heads, 4.0, 2.0, 0.0);
+        weigh_terms(&mut heads, &terms(0.0, 0.0));
         assert_eq!(heads[0]["edge_weight"], 4.0);
         assert_eq!(heads[1]["foreground"], 2.0);
         assert!(heads[0].get("foreground").is_none() && heads[1].get("edge_weight").is_none());
+        assert!(heads.iter().all(|h| h.get("iou_weight").is_none()));
         assert!(heads[2].get("edge_weight").is_none() && heads[2].get("foreground").is_none());
-        weigh_terms(&mut heads, 4.0, 2.0, 8.0);
+        weigh_terms(&mut heads, &terms(8.0, 3.0));
         assert_eq!(heads[2]["edge_weight"], 8.0);
-        assert!(heads[3].get("edge_weight").is_none());
+        assert_eq!(heads[0]["iou_weight"], 3.0);
+        assert!(heads[3].get("edge_weight").is_none() && heads[2].get("iou_weight").is_none());
     }
 
     /// A GPU's training, or one the time cap stopped, is marked not reproducible; a whole CPU

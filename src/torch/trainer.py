@@ -79,8 +79,20 @@ def head_loss(s, t, spec):
             bins = torch.arange(r, dtype=s.dtype, device=s.device).view(1, 1, r, 1, 1)
             edge = ((ls.exp() - pt) * bins).sum(2).abs().mean(1, keepdim=True)
             loss = loss + spec["edge_weight"] * (edge * wgt).sum() / batch_total(wgt)
+        if spec.get("iou_weight"):
+            bins = torch.arange(r, dtype=s.dtype, device=s.device).view(1, 1, r, 1, 1)
+            iou = shared_anchor_iou((ls.exp() * bins).sum(2), (pt * bins).sum(2))
+            loss = loss + spec["iou_weight"] * ((1 - iou) * wgt).sum() / batch_total(wgt)
         return loss
     raise ValueError(kind)
+
+
+def shared_anchor_iou(a, b):
+    """IoU of boxes given as distances (left, top, right, bottom: [B, 4, H, W]) from one
+    anchor point each pair shares: the overlap's sides are the nearer of each pair of sides."""
+    inter = (torch.minimum(a[:, 0], b[:, 0]) + torch.minimum(a[:, 2], b[:, 2])) * (torch.minimum(a[:, 1], b[:, 1]) + torch.minimum(a[:, 3], b[:, 3]))
+    area = lambda d: (d[:, 0] + d[:, 2]) * (d[:, 1] + d[:, 3])  # noqa: E731
+    return (inter / (area(a) + area(b) - inter).clamp(min=1e-6)).unsqueeze(1)
 
 
 def v5_edges(s, t, obj):
