@@ -119,8 +119,8 @@ fn recover_needs_a_prune_pass() {
 #[test]
 fn impossible_recover_settings_are_refused() {
     let dir = tempfile::tempdir().unwrap();
-    let weights = "box_edges, class_foreground and v5_box_edges must be finite and 0 or more";
-    for (setting, needle) in [("box_edges: -1", weights), ("v5_box_edges: -0.5", weights), ("box_edges: .inf", weights), ("class_foreground: -2", weights), ("class_foreground: .nan", weights), ("lr: .nan", "lr must be a positive number"), ("batch: 0", "steps and batch must be at least 1"), ("devices: 0", "devices must be 1 to 64"), ("{devices: 3, batch: 8}", "batch (8) must divide among the devices (3)")] {
+    let weights = "box_edges, class_foreground, v5_box_edges and box_iou must be finite and 0 or more";
+    for (setting, needle) in [("box_edges: -1", weights), ("v5_box_edges: -0.5", weights), ("box_edges: .inf", weights), ("class_foreground: -2", weights), ("class_foreground: .nan", weights), ("box_iou: -1", weights), ("lr: .nan", "lr must be a positive number"), ("batch: 0", "steps and batch must be at least 1"), ("devices: 0", "devices must be 1 to 64"), ("{devices: 3, batch: 8}", "batch (8) must divide among the devices (3)")] {
         let recipe = dir.path().join("r.yaml");
         let setting = setting.trim_start_matches('{').trim_end_matches('}');
         std::fs::write(&recipe, format!("name: r\npasses: [{LOSSLESS}, {{prune: {{ratio: 0.5, compensate: none}}}}, {{recover: {{{setting}}}}}, cleanup]\n")).unwrap();
