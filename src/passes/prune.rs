@@ -18,7 +18,7 @@
 use crate::analysis::channels::analyse;
 use crate::calib_frames::image_feeds;
 use crate::ir::{infer, Graph};
-use crate::quant::attribution::{output_errors, worst_rel_l2, OutputError};
+use crate::quant::attribution::{worst_rel_l2, OutputError, ReferenceOutputs};
 use crate::onnx::edit::expose_outputs;
 use crate::onnx::proto::ModelProto;
 use super::{Pass, PassContext};
@@ -189,9 +189,10 @@ impl Pass for Prune {
         let mut compensation_kept = o.compensate != Mode::None;
         if !held_out.is_empty() {
             let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-            let result = output_errors(&original, model, &held_out, threads, None)?;
+            let reference = ReferenceOutputs::new(&original, &held_out, threads, None)?;
+            let result = reference.errors(model)?;
             if let Some(u) = uncompensated {
-                let before = output_errors(&original, &u, &held_out, threads, None)?;
+                let before = reference.errors(&u)?;
                 // Compensation stays only where it helps on frames it never saw: the worst
                 // output group (boxes, objectness, classes judged apart) must improve.
                 compensation_kept = worst_rel_l2(&result) < worst_rel_l2(&before);
@@ -251,6 +252,7 @@ fn allocate(original: &ModelProto, analysis: &crate::analysis::channels::Channel
     // Minutes on a larger model: say how far it is (hidden when stderr is not a terminal).
     let pb = indicatif::ProgressBar::new(prunable as u64);
     pb.set_style(indicatif::ProgressStyle::with_template("prune: sensitivity of each group [{bar:30}] {pos}/{len} ({elapsed})").expect("valid template").progress_chars("=> "));
+    let reference = ReferenceOutputs::new(original, feeds, threads, None)?;
     for (gi, g) in analysis.groups.iter().enumerate().filter(|(_, g)| g.frozen.is_none()) {
         pb.inc(1);
         let mut levels: Vec<Level> = Vec::new();
@@ -260,7 +262,7 @@ fn allocate(original: &ModelProto, analysis: &crate::analysis::channels::Channel
             if keep >= g.classes.len() || levels.last().is_some_and(|l| l.keep == keep) {
                 continue;
             }
-            let damage = worst_rel_l2(&output_errors(original, &m, feeds, threads, None)?);
+            let damage = worst_rel_l2(&reference.errors(&m)?);
             levels.push(Level { ratio, keep, damage, macs_saved: base.saturating_sub(counts(&m)?.macs) });
         }
         if !levels.is_empty() {

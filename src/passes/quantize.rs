@@ -648,7 +648,8 @@ struct Mixed {
 fn mixed_precision(m: &MixedPrecision, emit_with: &dyn Fn(&Plan) -> Result<(ModelProto, crate::quant::qdq::Emitted)>) -> Result<Mixed> {
     let mut ranked: Vec<&LayerError> = m.layers.iter().collect();
     ranked.sort_by(|a, b| b.alone.rel_l2.total_cmp(&a.alone.rel_l2));
-    let mut worst = worst_rel_l2(&attribution::output_errors(m.float, m.quantized, m.frames, m.threads, None)?);
+    let reference = attribution::ReferenceOutputs::new(m.float, m.frames, m.threads, None)?;
+    let mut worst = worst_rel_l2(&reference.errors(m.quantized)?);
     let mut names = m.keep.clone();
     let mut out = Mixed::default();
     for layer in ranked.into_iter().take(m.max_layers) {
@@ -659,7 +660,7 @@ fn mixed_precision(m: &MixedPrecision, emit_with: &dyn Fn(&Plan) -> Result<(Mode
         with.insert(layer.node.clone());
         let candidate_plan = plan(m.graph, &with);
         let candidate = emit_with(&candidate_plan)?;
-        let after = worst_rel_l2(&attribution::output_errors(m.float, &candidate.0, m.frames, m.threads, None)?);
+        let after = worst_rel_l2(&reference.errors(&candidate.0)?);
         let step = serde_json::json!({"node": layer.node, "op": layer.op, "alone_rel_l2": layer.alone.rel_l2, "output_rel_l2_before": worst, "output_rel_l2_after": after});
         // A float layer costs speed: keep it only where it clearly helps.
         if after < worst * MIN_IMPROVEMENT {

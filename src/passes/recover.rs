@@ -29,7 +29,7 @@ use crate::torch::heads::{feature_specs, head_specs_against};
 use crate::torch::schedule::Schedule;
 use crate::torch::train::{train, Job, Outcome, Training};
 use std::collections::HashMap;
-use crate::quant::attribution::{output_errors, worst_rel_l2, DetectionAgreement};
+use crate::quant::attribution::{worst_rel_l2, DetectionAgreement, ReferenceOutputs};
 use crate::scene::compare::SceneView;
 use anyhow::{anyhow, bail, Result};
 
@@ -142,7 +142,8 @@ impl Pass for Recover {
         let image = |f: &Vec<(String, crate::tensor::Tensor)>| f[0].1.clone();
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         let view = SceneView::of_teacher(model, &teacher)?;
-        let errors = |m: &ModelProto| output_errors(&teacher, m, check, threads, view.as_ref());
+        let reference = ReferenceOutputs::new(&teacher, check, threads, view.as_ref())?;
+        let errors = |m: &ModelProto| reference.errors(m);
         let before = errors(model)?;
         let mut trained = model.clone();
         let trainable = match o.train {

@@ -166,34 +166,70 @@ pub fn output_errors(reference: &ModelProto, candidate: &ModelProto, feeds: &Fee
 /// accelerator with exact int32 sums computes), where `Level3` fuses it into the CPU's
 /// integer kernels (which saturate with 8-bit weights on x86 without VNNI).
 pub fn output_errors_at(reference: &ModelProto, candidate: &ModelProto, feeds: &Feeds, threads: usize, scene: Option<&SceneView>, level: GraphOptimizationLevel) -> Result<Vec<OutputError>> {
-    let g = reference.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
-    let graph = Graph::build(g)?;
-    let inf = infer(&graph);
-    let outputs: Vec<String> = g.output.iter().map(|o| o.name.clone()).collect();
-    let head = head::detect(&graph, &inf, &outputs);
-    let mut r = OrtRuntime::with_options(reference, GraphOptimizationLevel::Level3, threads)?;
-    let mut c = OrtRuntime::with_options(candidate, level, threads)?;
-    let mut sums: BTreeMap<(usize, Option<&'static str>), ErrorSums> = BTreeMap::new();
-    for feed in feeds {
-        let (ro, co) = match scene {
-            None => (r.run(feed)?, c.run(feed)?),
-            Some(s) => {
-                let ro = r.run(feed)?.into_iter().map(|(n, t)| Ok((n.clone(), if head.output.as_deref() == Some(n.as_str()) { s.gather(&t)? } else { t }))).collect::<Result<Vec<_>>>()?;
-                (ro, c.run(&s.crop_feed(feed)?)?)
-            }
-        };
-        for (k, ((name, a), (_, b))) in ro.iter().zip(&co).enumerate() {
-            let (x, y) = (a.data.to_f64(), b.data.to_f64());
-            sums.entry((k, None)).or_default().add(x.iter().copied(), y.iter().copied());
-            if head.output.as_deref() == Some(name.as_str()) {
-                for (group, range) in channel_groups(head.kind, &a.shape) {
-                    let (x, y) = (crate::metrics::validation::select_channels(head.kind, a, range.clone()), crate::metrics::validation::select_channels(head.kind, b, range));
-                    sums.entry((k, Some(group))).or_default().add(x.into_iter(), y.into_iter());
+    ReferenceOutputs::new(reference, feeds, threads, scene)?.errors_at(candidate, level)
+}
+
+/// A reference model's outputs on some frames, run once, that candidates are measured against:
+/// a loop over candidates (pruning's sensitivity, mixed precision) builds the reference's
+/// session and runs it once, not once per candidate.
+pub struct ReferenceOutputs<'a> {
+    names: Vec<String>,
+    /// The decoded detection output and its kind: its channel groups are measured apart.
+    head: crate::analysis::head::Head,
+    /// Per frame, the reference's outputs (under a scene, the detection output gathered to
+    /// the scene's cells).
+    runs: Vec<Vec<(String, Tensor)>>,
+    feeds: &'a Feeds,
+    scene: Option<&'a SceneView>,
+    threads: usize,
+}
+
+impl<'a> ReferenceOutputs<'a> {
+    pub fn new(reference: &ModelProto, feeds: &'a Feeds, threads: usize, scene: Option<&'a SceneView>) -> Result<Self> {
+        let g = reference.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+        let graph = Graph::build(g)?;
+        let inf = infer(&graph);
+        let names: Vec<String> = g.output.iter().map(|o| o.name.clone()).collect();
+        let head = head::detect(&graph, &inf, &names);
+        let mut r = OrtRuntime::with_options(reference, GraphOptimizationLevel::Level3, threads)?;
+        let mut runs = Vec::with_capacity(feeds.len());
+        for feed in feeds {
+            let ro = r.run(feed)?;
+            runs.push(match scene {
+                None => ro,
+                Some(s) => ro.into_iter().map(|(n, t)| Ok((n.clone(), if head.output.as_deref() == Some(n.as_str()) { s.gather(&t)? } else { t }))).collect::<Result<Vec<_>>>()?,
+            });
+        }
+        Ok(ReferenceOutputs { names, head, runs, feeds, scene, threads })
+    }
+
+    /// [`output_errors`] of `candidate` against these outputs.
+    pub fn errors(&self, candidate: &ModelProto) -> Result<Vec<OutputError>> {
+        self.errors_at(candidate, GraphOptimizationLevel::Level3)
+    }
+
+    /// [`output_errors_at`] of `candidate` against these outputs.
+    pub fn errors_at(&self, candidate: &ModelProto, level: GraphOptimizationLevel) -> Result<Vec<OutputError>> {
+        let mut c = OrtRuntime::with_options(candidate, level, self.threads)?;
+        let mut sums: BTreeMap<(usize, Option<&'static str>), ErrorSums> = BTreeMap::new();
+        for (feed, ro) in self.feeds.iter().zip(&self.runs) {
+            let co = match self.scene {
+                None => c.run(feed)?,
+                Some(s) => c.run(&s.crop_feed(feed)?)?,
+            };
+            for (k, ((name, a), (_, b))) in ro.iter().zip(&co).enumerate() {
+                let (x, y) = (a.data.to_f64(), b.data.to_f64());
+                sums.entry((k, None)).or_default().add(x.iter().copied(), y.iter().copied());
+                if self.head.output.as_deref() == Some(name.as_str()) {
+                    for (group, range) in channel_groups(self.head.kind, &a.shape) {
+                        let (x, y) = (crate::metrics::validation::select_channels(self.head.kind, a, range.clone()), crate::metrics::validation::select_channels(self.head.kind, b, range));
+                        sums.entry((k, Some(group))).or_default().add(x.into_iter(), y.into_iter());
+                    }
                 }
             }
         }
+        Ok(sums.into_iter().map(|((k, group), s)| OutputError { output: self.names[k].clone(), group, error: s.finish() }).collect())
     }
-    Ok(sums.into_iter().map(|((k, group), s)| OutputError { output: outputs[k].clone(), group, error: s.finish() }).collect())
 }
 
 /// The reference's confident detections on some frames, decoded once, that candidates are
