@@ -73,14 +73,13 @@ def head_loss(s, t, spec):
         kl = (pt * (torch.log(pt.clamp(min=1e-12)) - ls)).sum(2).mean(1, keepdim=True)  # [b, 1, h, w]
         wgt = spec["weight"] if spec.get("weight") is not None else torch.ones_like(kl)
         loss = (kl * wgt).sum() / batch_total(wgt)
+        bins = torch.arange(r, dtype=s.dtype, device=s.device).view(1, 1, r, 1, 1)
         if spec.get("edge_weight"):
             # The box edges themselves (each side's expected distance, in bins): where a
             # distribution's small changes move the edge, which IoU at 0.95 feels.
-            bins = torch.arange(r, dtype=s.dtype, device=s.device).view(1, 1, r, 1, 1)
             edge = ((ls.exp() - pt) * bins).sum(2).abs().mean(1, keepdim=True)
             loss = loss + spec["edge_weight"] * (edge * wgt).sum() / batch_total(wgt)
         if spec.get("iou_weight"):
-            bins = torch.arange(r, dtype=s.dtype, device=s.device).view(1, 1, r, 1, 1)
             iou = shared_anchor_iou((ls.exp() * bins).sum(2), (pt * bins).sum(2))
             loss = loss + spec["iou_weight"] * ((1 - iou) * wgt).sum() / batch_total(wgt)
         return loss
@@ -90,9 +89,10 @@ def head_loss(s, t, spec):
 def shared_anchor_iou(a, b):
     """IoU of boxes given as distances (left, top, right, bottom: [B, 4, H, W]) from one
     anchor point each pair shares: the overlap's sides are the nearer of each pair of sides."""
-    inter = (torch.minimum(a[:, 0], b[:, 0]) + torch.minimum(a[:, 2], b[:, 2])) * (torch.minimum(a[:, 1], b[:, 1]) + torch.minimum(a[:, 3], b[:, 3]))
-    area = lambda d: (d[:, 0] + d[:, 2]) * (d[:, 1] + d[:, 3])  # noqa: E731
-    return (inter / (area(a) + area(b) - inter).clamp(min=1e-6)).unsqueeze(1)
+    near = torch.minimum(a, b)
+    inter = (near[:, 0] + near[:, 2]) * (near[:, 1] + near[:, 3])
+    union = (a[:, 0] + a[:, 2]) * (a[:, 1] + a[:, 3]) + (b[:, 0] + b[:, 2]) * (b[:, 1] + b[:, 3]) - inter
+    return (inter / union.clamp(min=1e-6)).unsqueeze(1)
 
 
 def v5_edges(s, t, obj):
