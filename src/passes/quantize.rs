@@ -519,8 +519,8 @@ fn quantization_aware(float: &ModelProto, original: Option<&super::Teacher>, qua
     let student = crate::quant::qat::Student { scale_groups, scale_lr: q.scale_lr, ..crate::quant::qat::Student::symmetric(heads, o.weight_bits) };
     let t = crate::quant::qat::train(&quantized, teacher, student, &frames, held_out, &schedule, threads)?;
     cx.record_training(&t.outcome);
-    let before = attribution::output_errors(teacher, &quantized, held_out, threads, view.as_ref())?;
-    let after = attribution::output_errors(teacher, &t.model, held_out, threads, view.as_ref())?;
+    let reference = attribution::ReferenceOutputs::new(teacher, held_out, threads, view.as_ref())?;
+    let (before, after) = (reference.errors(&quantized)?, reference.errors(&t.model)?);
     // Class scores differ most on the background cells, which rel L2 sums over and mAP does
     // not rank. Against the unpruned model (v8 w0.25 pruned to 0.28: classes 0.245 -> 0.260
     // while mAP rose 0.7795 -> 0.7947), and wherever the foreground term trades background

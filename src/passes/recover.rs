@@ -144,8 +144,7 @@ impl Pass for Recover {
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         let view = SceneView::of_teacher(model, &teacher)?;
         let reference = ReferenceOutputs::new(&teacher, check, threads, view.as_ref())?;
-        let errors = |m: &ModelProto| reference.errors(m);
-        let before = errors(model)?;
+        let before = reference.errors(model)?;
         let mut trained = model.clone();
         let trainable = match o.train {
             Train::All => None,
@@ -154,7 +153,7 @@ impl Pass for Recover {
         let opts = Training { schedule: o.schedule.clone(), seed: o.seed, window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground, v5_box_edges: o.v5_box_edges, box_iou: o.box_iou };
         let outcome = distill(&mut trained, &teacher, &kept, &train.iter().map(image).collect::<Vec<_>>(), &check.iter().map(image).collect::<Vec<_>>(), &opts)?;
         cx.record_training(&outcome);
-        let after = errors(&trained)?;
+        let after = reference.errors(&trained)?;
         // Detections decide where they can be decoded: a pruned head whose class scores all
         // sit near zero is at rel L2 1.0, and a half-recovered one that finds most objects
         // with a few extra boxes can sit above it. A scene's student sees a window of the

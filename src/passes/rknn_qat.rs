@@ -31,7 +31,7 @@ use crate::detect::split_head::HeadLayout;
 use crate::onnx::proto::ModelProto;
 use super::{Pass, PassContext};
 use crate::quant::at_points;
-use crate::quant::attribution::{output_errors_at, worst_rel_l2, OutputError};
+use crate::quant::attribution::{worst_rel_l2, OutputError, ReferenceOutputs};
 use ort::session::builder::GraphOptimizationLevel;
 use crate::quant::qat::{self, Student};
 use crate::targets::rknn::DATASET_FRAMES;
@@ -158,8 +158,8 @@ impl Pass for RknnQat {
         cx.record_training(&t.outcome);
         // The NPU sums in exact int32: ONNX Runtime's reference kernels compute what it does,
         // its x86 integer kernels do not (they saturate with 8-bit weights without VNNI).
-        let before = output_errors_at(model, &quantized, &held, threads, None, GraphOptimizationLevel::Disable)?;
-        let after = output_errors_at(model, &t.model, &held, threads, None, GraphOptimizationLevel::Disable)?;
+        let reference = ReferenceOutputs::new(model, &held, threads, None)?;
+        let (before, after) = (reference.errors_at(&quantized, GraphOptimizationLevel::Disable)?, reference.errors_at(&t.model, GraphOptimizationLevel::Disable)?);
         // Outputs that never move by one int8 output step (a level with no object in the
         // held-out frames: float scores ~1e-5, the QDQ's 0, rel L2 1 either way) have no say.
         let signal = |e: &OutputError| e.error.max_abs >= OUTPUT_STEP;

@@ -158,15 +158,7 @@ pub struct OutputError {
 /// With `scene`, the candidate is scene-specialized: it sees the crop of each frame and its
 /// outputs are compared with the reference's gathered into its layout.
 pub fn output_errors(reference: &ModelProto, candidate: &ModelProto, feeds: &Feeds, threads: usize, scene: Option<&SceneView>) -> Result<Vec<OutputError>> {
-    output_errors_at(reference, candidate, feeds, threads, scene, GraphOptimizationLevel::Level3)
-}
-
-/// [`output_errors`] with the candidate run at `level`: `Disable` keeps a QDQ graph on ONNX
-/// Runtime's reference kernels (float arithmetic on dequantized values, what an integer
-/// accelerator with exact int32 sums computes), where `Level3` fuses it into the CPU's
-/// integer kernels (which saturate with 8-bit weights on x86 without VNNI).
-pub fn output_errors_at(reference: &ModelProto, candidate: &ModelProto, feeds: &Feeds, threads: usize, scene: Option<&SceneView>, level: GraphOptimizationLevel) -> Result<Vec<OutputError>> {
-    ReferenceOutputs::new(reference, feeds, threads, scene)?.errors_at(candidate, level)
+    ReferenceOutputs::new(reference, feeds, threads, scene)?.errors(candidate)
 }
 
 /// A reference model's outputs on some frames, run once, that candidates are measured against:
@@ -208,7 +200,10 @@ impl<'a> ReferenceOutputs<'a> {
         self.errors_at(candidate, GraphOptimizationLevel::Level3)
     }
 
-    /// [`output_errors_at`] of `candidate` against these outputs.
+    /// [`Self::errors`] with the candidate run at `level`: `Disable` keeps a QDQ graph on ONNX
+    /// Runtime's reference kernels (float arithmetic on dequantized values, what an integer
+    /// accelerator with exact int32 sums computes), where `Level3` fuses it into the CPU's
+    /// integer kernels (which saturate with 8-bit weights on x86 without VNNI).
     pub fn errors_at(&self, candidate: &ModelProto, level: GraphOptimizationLevel) -> Result<Vec<OutputError>> {
         let mut c = OrtRuntime::with_options(candidate, level, self.threads)?;
         let mut sums: BTreeMap<(usize, Option<&'static str>), ErrorSums> = BTreeMap::new();
