@@ -626,6 +626,10 @@ def latency_640(ctx):
     for name, text in tried.items():
         (tried_prune / f"detect-pruned-f32-{name}.yaml").write_text(text.replace("name: detect-pruned-f32", f"name: detect-pruned-f32-{name}"))
     narrow = "narrow_float: 16"
+    # narrow-convs-nchw measured both ways: taken out of the recipes that end with it (any
+    # pass after it lowers its 3-D convolutions; dce changes nothing else), put on detect-f32.
+    (tried_prune / "2d.yaml").write_text("name: 2d\npasses: [dce]\n")
+    (tried_prune / "3d.yaml").write_text("name: 3d\npasses: [narrow-convs-nchw]\n")
     # (variant, what it is, compiled from, recipe, compile's further arguments)
     plan = [
         ("f32", "detect-f32", None, "passes/detect-f32.yaml", ()),
@@ -636,6 +640,9 @@ def latency_640(ctx):
         ("pruned-int8-all", "detect-pruned-int8 with narrow_float: 0 (every layer a candidate)", "pruned-f32", own_passes(ctx, "detect-pruned-int8", "narrow_float: 0"), ()),
         ("pruned-f32-round16", "detect-pruned-f32 with round_to: 16", None, tried_prune / "detect-pruned-f32-round16.yaml", ()),
         ("pruned-f32-latency", "detect-pruned-f32 with target: {latency: 0.42}", None, tried_prune / "detect-pruned-f32-latency.yaml", ()),
+        ("pruned-f32-2d", "detect-pruned-f32 without narrow-convs-nchw", "pruned-f32", tried_prune / "2d.yaml", ()),
+        ("pruned-int8-2d", "detect-pruned-int8 without narrow-convs-nchw", "pruned-int8", tried_prune / "2d.yaml", ()),
+        ("f32-3d", "detect-f32 with narrow-convs-nchw", "f32", tried_prune / "3d.yaml", ()),
         # What a tract deployment ships: the same models in the forms `--target tract` chose
         # for tract on this machine (wide depthwise split, column tiles where they ran faster);
         # their blur maps are bound already.

@@ -240,6 +240,11 @@ def latency(f):
                 f"{o('pruned-int8-all'):.3f}× without `narrow_float`); `detect-int8` with `narrow_float: 16` "
                 f"{o('int8-narrow'):.3f}×. tract against ONNX Runtime: "
                 + ", ".join(f"`{v}` {t(v):.2f}×" for v in ("f32", "pruned-f32", "int8", "pruned-int8")) + "."]
+    if ("pruned-f32-2d", "ort") in by:
+        # narrow-convs-nchw's gain, within the same loop: each model against itself in 2-D.
+        pairs = [("pruned-f32", "pruned-f32-2d"), ("pruned-int8", "pruned-int8-2d"), ("f32-3d", "f32")]
+        out[-1] += (" `narrow-convs-nchw` on ONNX Runtime, each model against its 2-D form: " + ", ".join(
+            f"`{a}` {by[(a, 'ort')]['median_ms'] / by[(b, 'ort')]['median_ms']:.3f}× of `{b}`" for a, b in pairs) + ".")
     shipped = [v for v in ("f32", "pruned-f32") if (f"{v}-tract", "tract") in by]
     if shipped:
         # What a tract deployment runs (`--target tract`) against ONNX Runtime on the plain model.

@@ -52,6 +52,18 @@ impl Failed {
     }
 }
 
+/// A recipe of the passes `text` adds to its base, named `name`: applied to the base's
+/// output, it compiles what the whole recipe does (e.g. INT8 and the narrow convolutions'
+/// form from the pruned f32 compile) without training the same model again.
+pub fn own_passes_of(text: &str, name: &str) -> Result<String> {
+    let r = Recipe::parse(text)?;
+    let own: Vec<_> = r.passes.iter().filter(|p| p.base.is_empty()).cloned().collect();
+    if own.is_empty() {
+        anyhow::bail!("built-in recipe {} adds no passes to its base", r.name);
+    }
+    Recipe { name: name.into(), description: format!("the passes {} adds to its base", r.name), bases: Vec::new(), passes: own }.to_yaml()
+}
+
 /// A recipe of `text`'s last pass alone, named `name`: applied to an earlier variant, it
 /// makes e.g. INT8 from the f32 compile without running the lossless passes again.
 pub fn last_pass_of(text: &str, name: &str) -> Result<String> {

@@ -1,11 +1,12 @@
 //! `pdi-compile bench MODEL -o DIR`: run time against error for every deployment variant.
 //!
 //! Variants: unpruned and pruned with recovery (detect-f32 / detect-pruned-f32), each in
-//! f32, FP16 and INT8, and pruned without recovery (detect-pruned-f32-norecover) in f32 (the last pass of detect-fp16 / detect-int8 (detect-pruned-int8 for the pruned model) applied to the f32 compile, so pruning
-//! and the lossless passes run once), each on ONNX Runtime and tract, beside the original on
-//! ONNX Runtime. Every variant is verified against the original on the same frames: rel L2
-//! of the detection outputs and mAP@0.5:0.95 agreement (the original's detections as
-//! ground truth); then latency, the original and every variant on every engine interleaved
+//! f32, FP16 and INT8, and pruned without recovery (detect-pruned-f32-norecover) in f32 (the
+//! passes detect-fp16 / detect-int8 / detect-pruned-int8 add to their base applied to the f32
+//! compile, so pruning and the lossless passes run once), each on ONNX Runtime and tract,
+//! beside the original on ONNX Runtime. Every variant is verified against the original on
+//! the same frames: rel L2 of the detection outputs and mAP@0.5:0.95 agreement (the
+//! original's detections as ground truth); then latency, the original and every variant on every engine interleaved
 //! in one loop, so that all ratios come from the same run.
 //!
 //! DIR/bench.json, DIR/bench.md   the table (Pareto-optimal rows marked)
@@ -24,7 +25,7 @@ use crate::fsutil::{ensure_dir, write_atomic, StagedDir};
 use crate::pipeline::PassContext;
 use crate::runtime::Engine;
 use crate::runtime::op_profile::OpProfile;
-use crate::variants::{last_pass_of, profile_each, recipe, time_together, with_recover_steps, Failed, Timing};
+use crate::variants::{last_pass_of, own_passes_of, profile_each, recipe, time_together, with_recover_steps, Failed, Timing};
 use crate::verify::{verify, VerifyRequest};
 use anyhow::{anyhow, Result};
 use serde::Serialize;
@@ -109,7 +110,7 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
     };
     let fp16 = write_recipe("fp16", &last_pass_of(recipe("detect-fp16"), "fp16")?)?;
     let int8 = write_recipe("int8", &last_pass_of(recipe("detect-int8"), "int8")?)?;
-    let pruned_int8 = write_recipe("pruned-int8", &last_pass_of(recipe("detect-pruned-int8"), "pruned-int8")?)?;
+    let pruned_int8 = write_recipe("pruned-int8", &own_passes_of(recipe("detect-pruned-int8"), "pruned-int8")?)?;
     let stages = [
         ("f32", None, write_recipe("f32", recipe("detect-f32"))?),
         ("pruned-norecover-f32", None, write_recipe("pruned-norecover-f32", recipe("detect-pruned-f32-norecover"))?),

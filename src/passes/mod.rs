@@ -58,6 +58,7 @@ registry! {
     "rknn-qat" => rknn_qat::RknnQat { options },
     "split-wide-depthwise" => split_wide_depthwise::SplitWideDepthwise,
     "tile-conv-columns" => tile_conv_columns::TileConvColumns { options },
+    "narrow-convs-nchw" => narrow_convs_nchw::NarrowConvsNchw { options },
 }
 
 /// A pass built from its recipe entry, with its options as they will run: every default

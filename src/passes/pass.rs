@@ -144,6 +144,11 @@ pub trait Pass {
     fn provides(&self) -> Vec<Capability> {
         Vec::new()
     }
+    /// Whether the pass takes `narrow-convs-nchw`'s 3-D convolutions as they are; for every
+    /// other pass the runner lowers them back to 2-D first.
+    fn takes_lifted_convs(&self) -> bool {
+        false
+    }
     /// Checks what the pass will need of the input model and the command line (`--psf`),
     /// before any pass runs.
     fn preflight(&self, _input: &ModelProto, _cx: &PassContext) -> Result<()> {

@@ -93,6 +93,14 @@ pub fn run_passes(passes: Vec<Box<dyn Pass>>, model: &mut ModelProto, cx: &mut P
     let mut before = counts(model)?;
     for pass in passes {
         let t = Instant::now();
+        // narrow-convs-nchw's 3-D convolutions go back to 2-D for every pass but those that take them.
+        let lowered = match model.graph.as_mut() {
+            Some(g) if !pass.takes_lifted_convs() => crate::ir::rewrite::conv_3d::lower_all(g)?,
+            _ => 0,
+        };
+        if lowered > 0 {
+            before = counts(model)?;
+        }
         cx.pass = pass.name();
         let warned = cx.warnings.len();
         let details = pass.run(model, cx).with_context(|| format!("pass {}", pass.name()))?;

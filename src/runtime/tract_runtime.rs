@@ -49,15 +49,20 @@ fn executor(threads: usize) -> Executor {
 
 /// `model` as tract is given it: depthwise convolutions wider than tract's SIMD kernel takes
 /// split into bands (`split-wide-depthwise`; the same sums in another order), since past
-/// 128 taps tract runs them as scalar loops.
+/// 128 taps tract runs them as scalar loops; and `narrow-convs-nchw`'s 3-D convolutions
+/// back in 2-D (the same sums), which tract ran slower (1.15x on the pruned width-0.25 v5
+/// at 640x480).
 pub fn tract_ready(model: &ModelProto) -> Result<std::borrow::Cow<'_, ModelProto>> {
+    use crate::ir::rewrite::conv_3d::{any_lifted, lower_all};
     use crate::ir::rewrite::split_depthwise::{any_to_split, split_all};
     let graph = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
-    if !any_to_split(graph) {
+    if !any_to_split(graph) && !any_lifted(graph) {
         return Ok(std::borrow::Cow::Borrowed(model));
     }
     let mut ready = model.clone();
-    split_all(ready.graph.as_mut().expect("checked above"))?;
+    let g = ready.graph.as_mut().expect("checked above");
+    lower_all(g)?;
+    split_all(g)?;
     Ok(std::borrow::Cow::Owned(ready))
 }
 

@@ -17,7 +17,7 @@
 pub mod recommend;
 pub mod render;
 
-use crate::variants::{last_pass_of, recipe, time_together, with_recover_steps, Failed, Timing};
+use crate::variants::{last_pass_of, own_passes_of, recipe, time_together, with_recover_steps, Failed, Timing};
 use crate::compile::{compile, CompileReport, CompileRequest};
 use crate::fsutil::{ensure_dir, write_atomic, StagedDir};
 use crate::pipeline::{PassContext, Recipe};
@@ -93,7 +93,7 @@ fn stages(req: &ShipRequest) -> Result<Vec<(&'static str, Option<&'static str>, 
     Ok(vec![
         ("f32", None, recipe("detect-f32").to_string(), Target::Tract),
         ("pruned-f32", None, pruned.to_yaml()?, Target::Tract),
-        ("pruned-int8", Some("pruned-f32"), last_pass_of(recipe("detect-pruned-int8"), "pruned-int8")?, Target::Onnx),
+        ("pruned-int8", Some("pruned-f32"), own_passes_of(recipe("detect-pruned-int8"), "pruned-int8")?, Target::Onnx),
         ("rknn", Some("pruned-f32"), last_pass_of(recipe("detect-pruned-rknn"), "rknn")?, Target::Rknn),
     ])
 }

@@ -92,6 +92,7 @@ const FLAT: &[(&str, &[&str])] = &[
         "prune: {target: {macs: 0.28}, importance: l1, round_to: 8, compensate: lstsq, ridge: 0.05}",
         "recover: {steps: 8000, lr: 2.0e-3, batch: 8, frames: 2048}",
         "cleanup",
+        "narrow-convs-nchw",
     ]),
     ("detect-pruned-f32-norecover", &[
         "promote-constants",
@@ -104,6 +105,7 @@ const FLAT: &[(&str, &[&str])] = &[
         "dce",
         "prune: {ratio: 0.5, importance: l1, round_to: 8, compensate: lstsq, ridge: 0.05}",
         "cleanup",
+        "narrow-convs-nchw",
     ]),
     ("detect-pruned-fp16", &[
         "promote-constants",
@@ -117,6 +119,7 @@ const FLAT: &[(&str, &[&str])] = &[
         "prune: {target: {macs: 0.28}, importance: l1, round_to: 8, compensate: lstsq, ridge: 0.05}",
         "recover: {steps: 8000, lr: 2.0e-3, batch: 8, frames: 2048}",
         "cleanup",
+        "narrow-convs-nchw",
         "fp16: {activations: true, calib_frames: 8, headroom: 0.25}",
     ]),
     ("detect-pruned-fp16-norecover", &[
@@ -130,6 +133,7 @@ const FLAT: &[(&str, &[&str])] = &[
         "dce",
         "prune: {ratio: 0.5, importance: l1, round_to: 8, compensate: lstsq, ridge: 0.05}",
         "cleanup",
+        "narrow-convs-nchw",
         "fp16: {activations: true, calib_frames: 8, headroom: 0.25}",
     ]),
     ("detect-pruned-int8", &[
@@ -144,7 +148,9 @@ const FLAT: &[(&str, &[&str])] = &[
         "prune: {target: {macs: 0.28}, importance: l1, round_to: 8, compensate: lstsq, ridge: 0.05}",
         "recover: {steps: 8000, lr: 2.0e-3, batch: 8, frames: 2048}",
         "cleanup",
+        "narrow-convs-nchw",
         "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1, narrow_float: 16}",
+        "narrow-convs-nchw",
     ]),
     ("detect-pruned-int8-norecover", &[
         "promote-constants",
@@ -157,7 +163,9 @@ const FLAT: &[(&str, &[&str])] = &[
         "dce",
         "prune: {ratio: 0.5, importance: l1, round_to: 8, compensate: lstsq, ridge: 0.05}",
         "cleanup",
+        "narrow-convs-nchw",
         "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1, narrow_float: 16}",
+        "narrow-convs-nchw",
     ]),
     ("detect-pruned-int8-qat", &[
         "promote-constants",
@@ -172,6 +180,7 @@ const FLAT: &[(&str, &[&str])] = &[
         "recover: {steps: 19000, lr: 2.0e-3, batch: 8, frames: 4096}",
         "cleanup",
         "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1, qat: {teacher: original, steps: 3500, lr: 1.0e-3, frames: 4096}}",
+        "narrow-convs-nchw",
     ]),
     ("detect-pruned-rknn", &[
         "promote-constants",

@@ -1,6 +1,7 @@
 //! Graph rewrites that several layers need. The passes wrap them for recipes; the runtimes,
 //! targets and analyses below the passes call them directly.
 
+pub mod conv_3d;
 pub mod dce;
 pub mod split_depthwise;
 pub mod tile_columns;

@@ -20,6 +20,7 @@ mod example;
 mod fold_bn;
 mod fold_constants;
 mod fold_psf_gates;
+mod narrow_convs_nchw;
 mod promote_constants;
 mod prune;
 mod quantize;

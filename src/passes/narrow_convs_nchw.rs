@@ -1,0 +1,78 @@
+//! `narrow-convs-nchw`: each group-1 convolution with fewer than `below` input and output
+//! channels becomes a 3-D convolution over a unit axis (Unsqueeze, Conv, Squeeze), which
+//! ONNX Runtime runs in NCHW.
+//!
+//! Why: on x86, ONNX Runtime's NCHWc layout transform takes every float 2-D convolution with
+//! fewer input channels than its block (16 with AVX-512, 8 with AVX2) to its blocked kernel,
+//! which computes and writes the output padded to whole blocks; the next narrow
+//! convolution reads NCHW, so a reorder follows each one. A pruned encoder layer with 2
+//! output channels at 640x480 computes 16 and moves 8 times its bytes twice. The transform
+//! takes 4-D weights only, so a 3-D convolution stays on the NCHW kernels. What it gains on
+//! each model, measured against the same model in 2-D: record `latency-640`
+//! (`docs/results/latency.md`).
+//!
+//! The same products summed the same way (float noise, held to ONNX Runtime at rel L2
+//! 1e-6 by the test). An activation that alone reads a convolution moves inside the pair,
+//! where ONNX Runtime fuses it. Every later pass gets 2-D convolutions back (the runner
+//! lowers them first, under their own names), and so do tract and its target: a recipe
+//! ends with this pass, and one built on such a recipe ends with it again.
+//! Needs: f32 weights in an initializer, a 2-D kernel. Reports: each convolution rewritten
+//! (channels in and out, the activation moved with it).
+
+use crate::ir::rewrite::conv_3d::{lift, narrow};
+use crate::onnx::proto::ModelProto;
+use super::{Pass, PassContext};
+use anyhow::{bail, Result};
+use serde::Deserialize;
+
+#[derive(serde::Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Options {
+    /// A convolution is rewritten when both its input and its output channels are fewer
+    /// than this: ONNX Runtime's NCHWc block on AVX-512 (on AVX2 it is 8).
+    pub below: usize,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options { below: 16 }
+    }
+}
+
+pub struct NarrowConvsNchw {
+    pub options: Options,
+}
+
+impl Pass for NarrowConvsNchw {
+    fn name(&self) -> &'static str {
+        "narrow-convs-nchw"
+    }
+
+    fn check(&self) -> Result<()> {
+        if !(2..=4096).contains(&self.options.below) {
+            bail!("below must be 2 to 4096 channels");
+        }
+        Ok(())
+    }
+
+    fn takes_lifted_convs(&self) -> bool {
+        true
+    }
+
+    fn run(&self, model: &mut ModelProto, _: &mut PassContext) -> Result<serde_json::Value> {
+        let opset = crate::onnx::edit::default_opset(model).unwrap_or(13);
+        let g = super::graph_mut(model)?;
+        let mut rewritten = Vec::new();
+        // Last first: a rewrite inserts nodes, which moves the indices after it.
+        for (i, cin, cout) in narrow(g, self.options.below).into_iter().rev() {
+            let node = g.node[i].name.clone();
+            let activation = lift(g, i, opset)?;
+            rewritten.push(serde_json::json!({ "node": node, "channels": [cin, cout], "activation": activation }));
+        }
+        rewritten.reverse();
+        if !rewritten.is_empty() {
+            crate::ir::rewrite::dce::eliminate(g)?;
+        }
+        Ok(serde_json::json!({ "rewritten": rewritten }))
+    }
+}
