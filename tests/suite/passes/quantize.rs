@@ -40,7 +40,9 @@ pub(crate) fn compile(model: &str, recipe: &str, out: &Path, extra: &[&str]) -> 
     let r = run_compile(model, recipe, out, extra);
     assert_eq!(r.code, 0, "{}", r.stderr);
     let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
-    report["passes"].as_array().unwrap().last().unwrap()["details"].clone()
+    // The recipe's quantizing pass (`quantize` or `fp16`), not a layout pass after it.
+    let passes = report["passes"].as_array().unwrap();
+    passes.iter().rev().find(|p| p["pass"] != "narrow-convs-nchw").unwrap_or_else(|| passes.last().unwrap())["details"].clone()
 }
 
 pub(crate) fn run_candidate(path: &Path, engine: Engine) -> Vec<(String, pdi_compile::tensor::Tensor)> {
