@@ -6,8 +6,8 @@
 //! compile, so pruning and the lossless passes run once), each on ONNX Runtime and tract,
 //! beside the original on ONNX Runtime. Every variant is verified against the original on
 //! the same frames: rel L2 of the detection outputs and mAP@0.5:0.95 agreement (the
-//! original's detections as ground truth); then latency, the original and every variant on every engine interleaved
-//! in one loop, so that all ratios come from the same run.
+//! original's detections as ground truth); then latency, the original and every variant on
+//! every engine interleaved in one loop, so that all ratios come from the same run.
 //!
 //! DIR/bench.json, DIR/bench.md   the table (Pareto-optimal rows marked)
 //! DIR/bench.svg, DIR/bench.png   latency against rel L2 and against mAP agreement

@@ -24,7 +24,8 @@ pub fn narrow(g: &GraphProto, below: usize) -> Vec<(usize, usize, usize)> {
         .filter_map(|(i, n)| {
             let w = initializer(g, n.input.get(1)?)?;
             let (cout, cin) = (*w.dims.first()? as usize, *w.dims.get(1)? as usize);
-            (w.dims.len() == 4 && w.data_type == DType::F32.onnx_code() && cin < below && cout < below).then_some((i, cin, cout))
+            let plain = n.attribute.iter().all(|a| unit_axis(a).is_ok());
+            (w.dims.len() == 4 && w.data_type == DType::F32.onnx_code() && plain && cin < below && cout < below).then_some((i, cin, cout))
         })
         .collect()
 }
@@ -69,8 +70,7 @@ pub fn lift(g: &mut GraphProto, i: usize, opset: i64) -> Result<Option<String>> 
 
     let (squeezed_from, last) = match act {
         Some(j) => {
-            let a = &mut g.node[j];
-            let final_out = a.output[0].clone();
+            let final_out = g.node[j].output[0].clone();
             let act_out = fresh_name(g, &format!("{final_out}_3d"));
             retag(g, &out, &lifted_out, true);
             let a = &mut g.node[j];
@@ -170,9 +170,16 @@ fn find_lifted(g: &GraphProto) -> Option<(usize, usize, Option<usize>, usize)> {
         let c = only_reader(&un.output[0])?;
         let cn = &g.node[c];
         let w = initializer(g, cn.input.get(1)?)?;
-        let unit = |name: &str, at: usize| attr::ints(cn, name).is_none_or(|v| v.get(at) == Some(&if name == "pads" { 0 } else { 1 }));
+        // Each spatial attribute has the unit axis first: 1 for the kernel, stride and
+        // dilation, no padding on either side.
+        let unit = |name: &str| {
+            attr::ints(cn, name).is_none_or(|v| match name {
+                "pads" => v.len() == 6 && v[0] == 0 && v[3] == 0,
+                _ => v.len() == 3 && v[0] == 1,
+            })
+        };
         let plain = cn.op_type == "Conv" && cn.input[0] == un.output[0] && w.dims.len() == 5 && w.dims[2] == 1 && w.data_type == DType::F32.onnx_code()
-            && ["kernel_shape", "strides", "dilations", "pads"].iter().all(|a| unit(a, 0)) && attr::ints(cn, "pads").is_none_or(|p| p.len() == 6 && p[3] == 0);
+            && ["kernel_shape", "strides", "dilations", "pads"].iter().all(|a| unit(a));
         if !plain {
             return None;
         }
