@@ -71,9 +71,6 @@ impl Pass for NarrowConvsNchw {
             rewritten.push(serde_json::json!({ "node": node, "channels": [cin, cout], "activation": activation }));
         }
         rewritten.reverse();
-        if !rewritten.is_empty() {
-            crate::ir::rewrite::dce::eliminate(g)?;
-        }
         Ok(serde_json::json!({ "rewritten": rewritten }))
     }
 }

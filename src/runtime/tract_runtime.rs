@@ -1,7 +1,7 @@
 //! tract (the CPU deployment target), with shapes fixed from the first inputs it is given.
 
 use super::{NamedTensors, Runtime};
-use crate::onnx::proto::ModelProto;
+use crate::onnx::proto::{GraphProto, ModelProto};
 use crate::tensor::{Tensor, TensorData};
 use anyhow::{anyhow, bail, Result};
 use prost::Message;
@@ -47,23 +47,25 @@ fn executor(threads: usize) -> Executor {
     e
 }
 
-/// `model` as tract is given it: depthwise convolutions wider than tract's SIMD kernel takes
-/// split into bands (`split-wide-depthwise`; the same sums in another order), since past
-/// 128 taps tract runs them as scalar loops; and `narrow-convs-nchw`'s 3-D convolutions
-/// back in 2-D (the same sums), which tract ran slower (1.15x on the pruned width-0.25 v5
-/// at 640x480).
+/// `model` as tract is given it ([`make_tract_ready`]), borrowed when nothing changes.
 pub fn tract_ready(model: &ModelProto) -> Result<std::borrow::Cow<'_, ModelProto>> {
-    use crate::ir::rewrite::conv_3d::{any_lifted, lower_all};
-    use crate::ir::rewrite::split_depthwise::{any_to_split, split_all};
     let graph = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
-    if !any_to_split(graph) && !any_lifted(graph) {
+    if !crate::ir::rewrite::split_depthwise::any_to_split(graph) && !crate::ir::rewrite::conv_3d::any_lifted(graph) {
         return Ok(std::borrow::Cow::Borrowed(model));
     }
     let mut ready = model.clone();
-    let g = ready.graph.as_mut().expect("checked above");
-    lower_all(g)?;
-    split_all(g)?;
+    make_tract_ready(ready.graph.as_mut().expect("checked above"))?;
     Ok(std::borrow::Cow::Owned(ready))
+}
+
+/// Rewrites `g` into the form tract is given: `narrow-convs-nchw`'s 3-D convolutions back in
+/// 2-D (the same sums), which tract ran slower (1.15x on the pruned width-0.25 v5 at
+/// 640x480), and depthwise convolutions wider than tract's SIMD kernel takes split into
+/// bands (`split-wide-depthwise`; the same sums in another order), since past 128 taps tract
+/// runs them as scalar loops. Returns the depthwise convolutions split and those left.
+pub fn make_tract_ready(g: &mut GraphProto) -> Result<(Vec<serde_json::Value>, Vec<serde_json::Value>)> {
+    crate::ir::rewrite::conv_3d::lower_all(g)?;
+    crate::ir::rewrite::split_depthwise::split_all(g)
 }
 
 /// The decluttered typed model of `model` (made [`tract_ready`]) with its inputs fixed to the

@@ -129,8 +129,7 @@ pub fn write(dir: &Path, model: ModelProto, float: Option<ModelProto>, threads: 
     };
     let for_ort = model.clone();
     let mut model = model;
-    crate::ir::rewrite::conv_3d::lower_all(model.graph.as_mut().ok_or_else(|| anyhow!("model has no graph"))?)?;
-    let (split, left) = crate::ir::rewrite::split_depthwise::split_all(model.graph.as_mut().ok_or_else(|| anyhow!("model has no graph"))?)?;
+    let (split, left) = crate::runtime::tract_runtime::make_tract_ready(model.graph.as_mut().ok_or_else(|| anyhow!("model has no graph"))?)?;
     let conv_tiles = match reuse {
         Some(r) => super::tract_tiles::apply(&mut model, &r.tiled)?,
         None => super::tract_tiles::choose(&mut model, threads)?,

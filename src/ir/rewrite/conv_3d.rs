@@ -155,7 +155,7 @@ fn find_lifted(g: &GraphProto) -> Option<(usize, usize, Option<usize>, usize)> {
         let r: Vec<usize> = (0..g.node.len()).filter(|&j| g.node[j].input.iter().any(|i| i == v)).collect();
         (r.len() == 1 && !g.output.iter().any(|o| o.name == v)).then(|| r[0])
     };
-    let unit_axis = |n: &NodeProto| {
+    let on_axis_2 = |n: &NodeProto| {
         let axes = match n.input.get(1) {
             Some(a) => initializer(g, a).and_then(|t| to_tensor(t).ok()).and_then(|t| t.as_i64s()),
             None => attr::ints(n, "axes"),
@@ -164,7 +164,7 @@ fn find_lifted(g: &GraphProto) -> Option<(usize, usize, Option<usize>, usize)> {
     };
     (0..g.node.len()).find_map(|u| {
         let un = &g.node[u];
-        if un.op_type != "Unsqueeze" || !unit_axis(un) {
+        if un.op_type != "Unsqueeze" || !on_axis_2(un) {
             return None;
         }
         let c = only_reader(&un.output[0])?;
@@ -189,7 +189,7 @@ fn find_lifted(g: &GraphProto) -> Option<(usize, usize, Option<usize>, usize)> {
             op if FUSABLE.contains(&op) && g.node[next].input[0] == cn.output[0] => (Some(next), only_reader(&g.node[next].output[0])?),
             _ => return None,
         };
-        (g.node[s].op_type == "Squeeze" && unit_axis(&g.node[s])).then_some((u, c, a, s))
+        (g.node[s].op_type == "Squeeze" && on_axis_2(&g.node[s])).then_some((u, c, a, s))
     })
 }
 
