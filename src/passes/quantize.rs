@@ -10,7 +10,8 @@
 //! scale and a warning).
 //! Reports: the range method and frames, warnings, the rounding (learned: each layer's output
 //! error with nearest and learned rounding), every quantized layer's error against
-//! float alone and accumulated (worst first), the bias shifts corrected, the layers mixed
+//! float alone and accumulated (worst first), the bias shifts corrected (`measured_bias`: the
+//! shifts it measured and what was left after), the layers mixed
 //! precision kept float and why, the layers `float_where_faster` timed (and kept float where
 //! ONNX Runtime ran the model faster so), quantization-aware recovery (`qat`: its training, the output
 //! error before and after, the written model on ONNX Runtime against the worker's
@@ -54,6 +55,11 @@ pub struct Options {
     /// Subtract the per-channel output mean shift that weight rounding causes (from the
     /// calibration frames' per-channel input means).
     pub bias_correction: bool,
+    /// Bias correction measured on the emitted INT8 model: every quantized convolution's
+    /// per-channel output mean shift against float on the analysis frames, level by level
+    /// from the input, which also takes in what the activations' rounding and clipping
+    /// upstream moved (`quant::output_bias`). False: weight rounding's shift alone.
+    pub measured_bias: bool,
     /// Largest rel L2 of any output channel group against float; layers are kept float,
     /// most sensitive first, until it holds. None: no mixed precision.
     pub error_budget: Option<f64>,
@@ -215,6 +221,7 @@ impl Default for Options {
             analysis_frames: 8,
             held_out_frames: 8,
             bias_correction: true,
+            measured_bias: false,
             error_budget: None,
             max_float_layers: 8,
             keep_float: Vec::new(),
@@ -325,6 +332,9 @@ impl Pass for Quantize {
         let no_weights = HashMap::new();
         let weights = learned.as_ref().map_or(&no_weights, |l| &l.weights);
         clock.lap("rounding");
+        let with_shifts = |s: &HashMap<usize, Vec<f64>>| emit(&float, &base, &EmitOptions { params: &params, activations: o.activations, weight_bits: o.weight_bits, bias_shift: s, weights }).map(|(m, _)| m);
+        let measured_bias = if o.measured_bias { Some(crate::quant::output_bias::correct(&float, &graph, &base, &mut shifts, &analysis, threads, &with_shifts)?) } else { None };
+        clock.lap("measured_bias");
         let collection = collection_cost(&float, &feeds, &stats, threads)?;
         clock.lap("plain_inference_for_comparison");
 
@@ -433,6 +443,7 @@ impl Pass for Quantize {
             "held_out_frames": held_out.len(),
             "held_out_overlaps_calibration": overlap,
             "bias_corrected_convolutions": shifts.len(),
+            "measured_bias": measured_bias,
             "rounding": learned.map_or(serde_json::json!({"method": "nearest"}), |l| l.report),
             "qat": qat,
             "emitted": emitted,

@@ -6,6 +6,7 @@ pub mod attribution;
 pub mod collect;
 pub mod histogram;
 pub mod narrow;
+pub mod output_bias;
 pub mod params;
 pub mod plan;
 pub mod qat;

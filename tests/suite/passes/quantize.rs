@@ -195,6 +195,39 @@ fn mixed_precision_keeps_the_most_sensitive_layers_float_until_the_budget_holds(
     assert!(q["mixed_precision"]["kept_float"].as_array().unwrap().is_empty());
 }
 
+/// `measured_bias` corrects every quantized convolution level by level, so that on the frames
+/// it measured, as ONNX Runtime runs the model, each one's per-channel output mean is float's
+/// up to its int32 bias's rounding (correcting them all from one measurement leaves large
+/// shifts: the upstream layers' share counted twice); it changes the biases and nothing else.
+#[test]
+fn measured_bias_brings_every_convolutions_output_mean_to_floats() {
+    let dir = tempfile::tempdir().unwrap();
+    let plain = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64, bias_correction: true, error_budget: 0.1", "calib_frames: 16, bias_correction: true, error_budget: 10.0");
+    let measured = variant(dir.path(), &plain, "error_budget: 10.0", "error_budget: 10.0, measured_bias: true");
+    let (a, b) = (dir.path().join("plain"), dir.path().join("measured"));
+    let qa = compile(TINY, &plain, &a, &[]);
+    let qb = compile(TINY, &measured, &b, &[]);
+    assert!(qa["measured_bias"].is_null(), "off unless asked: {}", qa["measured_bias"]);
+    let m = &qb["measured_bias"];
+    let convs = m["convolutions"].as_u64().unwrap();
+    assert!(convs > 10 && m["levels"].as_u64().unwrap() > 5, "{m}");
+    let (before, after) = (m["mean_abs_shift"].as_f64().unwrap(), m["residual_mean_abs_shift"].as_f64().unwrap());
+    assert!(before > 0.0 && after < 0.02 * before, "mean per-channel shift {before} before, {after} after: {m}");
+    assert!(m["residual_largest_abs_shift"].as_f64().unwrap() < 0.1 * m["largest_abs_shift"].as_f64().unwrap(), "{m}");
+    // The same graph and weights; only int32 biases differ.
+    let (ga, gb) = (load(&a.join("model.onnx")).graph.unwrap(), load(&b.join("model.onnx")).graph.unwrap());
+    assert_eq!(ga.node, gb.node);
+    let mut changed = 0;
+    for (x, y) in ga.initializer.iter().zip(&gb.initializer) {
+        assert_eq!(x.name, y.name);
+        if x != y {
+            assert!(x.name.contains("_bias_int32"), "{} changed", x.name);
+            changed += 1;
+        }
+    }
+    assert!(changed as u64 > convs / 2, "{changed} of {convs} biases moved");
+}
+
 /// `float_where_faster` profiles the INT8 model, tries its heaviest convolutions float and
 /// keeps a layer float exactly when the whole model timed faster by the stated margin. Which
 /// layers win depends on the machine; what is checked is that the profile's kernels map back

@@ -1,0 +1,113 @@
+//! Bias correction measured on the outputs: each quantized convolution's per-channel output
+//! mean in the emitted INT8 model against the float model's, on the calibration frames,
+//! subtracted from its bias. Weight rounding's shift is predicted from the input means
+//! (`params::weight_rounding_shift`); this one also takes in what the activations' rounding
+//! and clipping upstream moved (an `mse` range clips a tail, and every layer after it sees
+//! its mean move).
+//!
+//! Level by level, from the input: a convolution's shift is measured once every convolution
+//! before it is corrected. Correcting all of them from one measurement counts the upstream
+//! layers' share twice (once where it arose, once downstream), and repeating that diverged
+//! on the trained v8 (the second round's shifts four times the first's).
+
+use super::collect::statistics;
+use super::plan::Plan;
+use crate::ir::Graph;
+use crate::onnx::proto::ModelProto;
+use crate::tensor::Tensor;
+use anyhow::Result;
+use std::collections::HashMap;
+
+/// What it measured, in the outputs' own units.
+#[derive(Debug, Default, serde::Serialize)]
+pub struct Report {
+    /// Levels (convolutions with no convolution between them and the input are level 0).
+    pub levels: usize,
+    pub convolutions: usize,
+    pub mean_abs_shift: f64,
+    pub largest_abs_shift: f64,
+    pub largest_at: String,
+    /// Measured again on the corrected model: what is left is the int32 biases' rounding and
+    /// float noise.
+    pub residual_mean_abs_shift: f64,
+    pub residual_largest_abs_shift: f64,
+}
+
+/// Adds each planned convolution's measured shift into `shifts` (by node index, subtracted
+/// from the bias at emission); `emit` writes the INT8 model under `shifts`.
+pub fn correct(
+    float: &ModelProto,
+    graph: &Graph,
+    plan: &Plan,
+    shifts: &mut HashMap<usize, Vec<f64>>,
+    feeds: &[Vec<(String, Tensor)>],
+    threads: usize,
+    emit: &dyn Fn(&HashMap<usize, Vec<f64>>) -> Result<ModelProto>,
+) -> Result<Report> {
+    let levels = levels(graph, plan);
+    let channels: HashMap<String, usize> = levels.iter().flatten().map(|(v, _, c)| (v.clone(), *c)).collect();
+    if channels.is_empty() {
+        return Ok(Report::default());
+    }
+    let reference = statistics(float, &[], &channels, feeds, threads)?.channel_means;
+    let mut r = Report { levels: levels.len(), convolutions: channels.len(), ..Report::default() };
+    let (mut shifted, mut left) = (Vec::new(), Vec::new());
+    // Run k corrects level k and reads what is left at level k - 1, corrected in the run
+    // before: the convolutions read out run in float on their dequantized inputs, while ONNX
+    // Runtime fuses everything else into its integer kernels as a deployment runs them (whose
+    // rounding moves the means downstream by as much as the shifts corrected here), so each
+    // level is read only with the levels after it.
+    for k in 0..=levels.len() {
+        let now = levels.get(k).map_or(&[][..], |l| &l[..]);
+        let before = k.checked_sub(1).map_or(&[][..], |j| &levels[j][..]);
+        let wanted: HashMap<String, usize> = now.iter().chain(before).map(|(v, _, c)| (v.clone(), *c)).collect();
+        let measured = statistics(&emit(shifts)?, &[], &wanted, feeds, threads)?.channel_means;
+        let diff = |v: &String| -> Vec<f64> { measured.get(v).zip(reference.get(v)).map_or(Vec::new(), |(q, f)| q.iter().zip(f).map(|(q, f)| q - f).collect()) };
+        for (v, _, _) in before {
+            left.extend(diff(v).into_iter().filter(|d| d.is_finite()).map(f64::abs));
+        }
+        for (v, node, c) in now {
+            let shift = shifts.entry(*node).or_insert_with(|| vec![0.0; *c]);
+            for (s, d) in shift.iter_mut().zip(diff(v)).filter(|(_, d)| d.is_finite()) {
+                *s += d;
+                shifted.push(d.abs());
+                if d.abs() > r.largest_abs_shift {
+                    (r.largest_abs_shift, r.largest_at) = (d.abs(), v.clone());
+                }
+            }
+        }
+    }
+    let mean = |x: &[f64]| x.iter().sum::<f64>() / x.len().max(1) as f64;
+    r.mean_abs_shift = mean(&shifted);
+    r.residual_mean_abs_shift = mean(&left);
+    r.residual_largest_abs_shift = left.iter().copied().fold(0.0, f64::max);
+    Ok(r)
+}
+
+/// The planned convolutions by level, each as (output, node, channels): a level's
+/// convolutions read nothing a convolution of the same or a later level writes.
+fn levels(graph: &Graph, plan: &Plan) -> Vec<Vec<(String, usize, usize)>> {
+    // Per value: how many planned convolutions lie on the longest path from the inputs to it.
+    let mut depth: HashMap<&str, usize> = HashMap::new();
+    let mut out: Vec<Vec<(String, usize, usize)>> = Vec::new();
+    for &i in &graph.order {
+        let n = graph.node(i);
+        let before = n.input.iter().filter_map(|v| depth.get(v.as_str())).copied().max().unwrap_or(0);
+        let conv = n.op_type == "Conv" && plan.quantized.contains(&i);
+        let channels = graph.initializers.get(n.input.get(1).map_or("", |s| s.as_str())).and_then(|w| w.dims.first()).map(|&c| c as usize);
+        let after = match (conv, channels) {
+            (true, Some(c)) => {
+                if out.len() <= before {
+                    out.resize_with(before + 1, Vec::new);
+                }
+                out[before].push((n.output[0].clone(), i, c));
+                before + 1
+            }
+            _ => before,
+        };
+        for o in &n.output {
+            depth.insert(o.as_str(), after);
+        }
+    }
+    out
+}
