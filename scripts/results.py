@@ -164,6 +164,8 @@ def int8(ctx):
 INT8_OPTIONS = [
     ("8-bit weights", "weight_bits: 7", "weight_bits: 8"),
     ("error budget 0.01", "error_budget: 0.1", "error_budget: 0.01"),
+    ("narrow float 16", "error_budget: 0.1}", "error_budget: 0.1, narrow_float: 16}"),
+    ("measured bias", "error_budget: 0.1}", "error_budget: 0.1, measured_bias: true}"),
 ]
 
 
@@ -678,6 +680,49 @@ def latency_640(ctx):
             "threads": c["threads"], "rows": rows, "gaps": gaps}
 
 
+def latency_640_full(ctx):
+    """The full-width v5 at 640x480 (random weights: latency follows the structure), compiled with
+    the shipped recipes (recovery cut to a few steps), in one interleaved loop on both engines;
+    each model written in 3-D by narrow-convs-nchw also against its 2-D form, on ONNX Runtime
+    (rel L2 on synthetic frames: the rewrite's float noise)."""
+    ctx.run(["scripts/setup-toolkit"])
+    folder = ctx.dir / "model"
+    ctx.run([torch_python(), "models/pdinet/export.py", "--out", folder, "--width", "1.0", "--size", "640x480",
+             "--head", "v5", "--psf", "input", "--opset", "17", "--fold", "on"])
+    model = next(folder.glob("*.onnx"))
+    recipes = shortened(ctx)
+    (ctx.dir / "2d.yaml").write_text("name: 2d\npasses: [dce]\n")
+    plan = [
+        ("f32", "detect-f32", None, "passes/detect-f32.yaml"),
+        ("int8", "detect-int8", "f32", own_passes(ctx, "detect-int8")),
+        ("pruned-f32", "detect-pruned-f32", None, recipes / "detect-pruned-f32.yaml"),
+        ("pruned-int8", "detect-pruned-int8", "pruned-f32", own_passes(ctx, "detect-pruned-int8")),
+        ("pruned-f32-2d", "detect-pruned-f32 without narrow-convs-nchw", "pruned-f32", ctx.dir / "2d.yaml"),
+        ("pruned-int8-2d", "detect-pruned-int8 without narrow-convs-nchw", "pruned-int8", ctx.dir / "2d.yaml"),
+    ]
+    macs, lifted = {}, {}
+    for name, _, base, recipe in plan:
+        rep = compile_(ctx, model if base is None else ctx.dir / base / "model.onnx", recipe, ctx.dir / name)
+        macs[name] = rep["after"]["macs"]
+        nchw = [p for p in rep["passes"] if p["pass"] == "narrow-convs-nchw"]
+        if nchw:
+            lifted[name] = len(nchw[-1]["details"]["rewritten"])
+    c, _ = ctx.json([BIN, "profile", *[ctx.dir / name / "model.onnx" for name, *_ in plan], "--psf", PSF, "--runs", 20])
+    rows = []
+    for (name, what, *_), engine in [(p, e) for p in plan for e in ("ort", "tract")]:
+        r = profiled(c, ctx.dir / name / "model.onnx", engine)
+        rows.append({"variant": name, "what": what, "engine": engine, "median_ms": r["median_ms"], "ratio": r["ratio"],
+                     "macs_ratio": macs[name] / macs["f32"],
+                     "ops": [{k: o[k] for k in ("op", "kernels", "ms", "share")} for o in r["profile"]["by_op"][:3]]})
+    noise = []
+    for name in ("pruned-f32", "pruned-int8"):
+        v, _ = ctx.json([BIN, "verify", "--reference", ctx.dir / f"{name}-2d/model.onnx", "--candidate",
+                         ctx.dir / name / "model.onnx", "--psf", PSF, "--random", 4, "--runs", 0, "--no-tract"])
+        noise.append({"variant": name, "lifted": lifted.get(name, 0), "rel_l2": max(o["ort"]["rel_l2"] for o in v["outputs"])})
+    return {"model": "v5 full width (random weights) at 640x480", "runs": c["runs"], "threads": c["threads"],
+            "rows": rows, "narrow_convs_nchw": noise}
+
+
 def latency_256(ctx):
     """The trained width-0.25 v5 at its own 256x192: INT8 against float on both engines, one
     interleaved loop, as `detect-int8` and `detect-int8` with `narrow_float: 16` compile it."""
@@ -781,6 +826,7 @@ def experiments(gpu):
         ("ship-640-v5", "full", "camera.md", ship_640("v5 w0.25"), cpu),
         ("ship-640-v8", "full", "camera.md", ship_640("v8 w0.25"), cpu),
         ("latency-640", "full", "latency.md", latency_640, cpu),
+        ("latency-640-full", "full", "latency.md", latency_640_full, cpu),
         ("tract-kernels", "quick", "tract.md", tract_kernels, None),
         ("latency-256", "quick", "latency.md", latency_256, None),
         ("pruned-v5-w0.25", "full", "pruning.md", pruned("v5 w0.25"), cpu),

@@ -287,6 +287,21 @@ def latency_256(f):
              f"(goal: no slower, ≤ 1), with `narrow_float: 16` at {by[('int8-narrow', 'ort')]['ratio']:.3f}×."]
 
 
+def latency_640_full(f):
+    rows = [[f"`{r['variant']}`: {r['what']}", r["engine"], f"{r['median_ms']:.1f}", f"{r['ratio']:.3f}×", f"{r['macs_ratio']:.3f}×",
+             ", ".join(f"{o['op']} {o['share']:.0%}" for o in r["ops"])] for r in f["rows"]]
+    by = {(r["variant"], r["engine"]): r for r in f["rows"]}
+    o = lambda v: by[(v, "ort")]["ratio"]
+    t = lambda v: by[(v, "tract")]["median_ms"] / by[(v, "ort")]["median_ms"]
+    noise = "; ".join(f"`{n['variant']}` ({n['lifted']} convolution(s) in 3-D) {n['rel_l2']:.1e}" for n in f["narrow_convs_nchw"])
+    return [f"{f['model']}, {f['runs']} interleaved runs on {f['threads']} threads:", ""] + \
+        table(["variant", "engine", "ms", "against f32", "MACs", "top operators"], rows) + \
+        ["", f"On ONNX Runtime, against `detect-f32`: `detect-int8` {o('int8'):.3f}× (goal ≤ 0.45), `detect-pruned-f32` "
+             f"{o('pruned-f32'):.3f}× at {by[('pruned-f32', 'ort')]['macs_ratio']:.3f}× the MACs, `detect-pruned-int8` "
+             f"{o('pruned-int8'):.3f}×. tract against ONNX Runtime: `f32` {t('f32'):.2f}×, `pruned-f32` {t('pruned-f32'):.2f}×. "
+             f"The 3-D form against the 2-D one on ONNX Runtime (rel L2 on 4 synthetic frames): {noise}."]
+
+
 def tract_kernels(f):
     rows = [[f"`{r['file']}`", f"{r['op']} {r['channels']} channels at {r['width']}×{r['height']}, "
              + ", ".join(f"{k} {v}" for k, v in r["attributes"].items()),
@@ -297,7 +312,7 @@ def tract_kernels(f):
         table(["model", "layer", "MACs", "tract kernels", "tract ms", "ONNX Runtime ms", "tract / ONNX Runtime"], rows)
 
 
-BLOCKS = {"lossless": lossless, "latency-640": latency, "tract-kernels": tract_kernels, "latency-256": latency_256, "camera-640": camera, "pruned-640": pruned_640,
+BLOCKS = {"lossless": lossless, "latency-640": latency, "latency-640-full": latency_640_full, "tract-kernels": tract_kernels, "latency-256": latency_256, "camera-640": camera, "pruned-640": pruned_640,
           "ship-640-v5": ship_640, "ship-640-v8": ship_640, "int8": int8, "int8-options": int8_options, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
           "rebuild": rebuild, "recipe-bytes": recipe_bytes,
           "broken-builds": broken_builds, "suite": suite}
