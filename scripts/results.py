@@ -692,11 +692,21 @@ def latency_640_full(ctx):
     model = next(folder.glob("*.onnx"))
     recipes = shortened(ctx)
     (ctx.dir / "2d.yaml").write_text("name: 2d\npasses: [dce]\n")
+    # Random weights put any INT8 model past the hard limit and the error budget, whose search
+    # would then keep layers float that a trained model quantizes (the trained width-0.25
+    # models keep none): both are off here.
+    def unchecked(recipe):
+        path = own_passes(ctx, recipe)
+        text = path.read_text()
+        if "error_budget: 0.1" not in text:
+            raise Failed(f"{recipe} no longer sets error_budget: 0.1")
+        path.write_text(text.replace("error_budget: 0.1", "error_budget: 10.0, hard_limit: {max_rel_l2: 1.0e9, min_cosine: -1}"))
+        return path
     plan = [
         ("f32", "detect-f32", None, "passes/detect-f32.yaml"),
-        ("int8", "detect-int8", "f32", own_passes(ctx, "detect-int8")),
+        ("int8", "detect-int8 (no error budget or hard limit)", "f32", unchecked("detect-int8")),
         ("pruned-f32", "detect-pruned-f32", None, recipes / "detect-pruned-f32.yaml"),
-        ("pruned-int8", "detect-pruned-int8", "pruned-f32", own_passes(ctx, "detect-pruned-int8")),
+        ("pruned-int8", "detect-pruned-int8 (no error budget or hard limit)", "pruned-f32", unchecked("detect-pruned-int8")),
         ("pruned-f32-2d", "detect-pruned-f32 without narrow-convs-nchw", "pruned-f32", ctx.dir / "2d.yaml"),
         ("pruned-int8-2d", "detect-pruned-int8 without narrow-convs-nchw", "pruned-int8", ctx.dir / "2d.yaml"),
     ]
