@@ -53,10 +53,12 @@ pub fn correct(
     let mut r = Report { levels: levels.len(), convolutions: channels.len(), ..Report::default() };
     let (mut shifted, mut left) = (Vec::new(), Vec::new());
     // Run k corrects level k and reads what is left at level k - 1, corrected in the run
-    // before: the convolutions read out run in float on their dequantized inputs, while ONNX
-    // Runtime fuses everything else into its integer kernels as a deployment runs them (whose
-    // rounding moves the means downstream by as much as the shifts corrected here), so each
-    // level is read only with the levels after it.
+    // before. A convolution read out runs in float on its dequantized inputs; ONNX Runtime
+    // fuses everything else into its integer kernels, as a deployment runs them (their
+    // rounding moves the means downstream by as much as the shifts corrected here, so the
+    // model is never read out whole). Level k - 1's convolutions, read out in run k, then
+    // quantize their float outputs themselves: a code differs from the fused kernel's here and
+    // there, without moving the means after it (measured on the tiny v5).
     for k in 0..=levels.len() {
         let now = levels.get(k).map_or(&[][..], |l| &l[..]);
         let before = k.checked_sub(1).map_or(&[][..], |j| &levels[j][..]);
