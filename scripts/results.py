@@ -645,6 +645,7 @@ def latency_640(ctx):
         ("pruned-f32-2d", "detect-pruned-f32 without narrow-convs-nchw", "pruned-f32", tried_prune / "2d.yaml", ()),
         ("pruned-int8-2d", "detect-pruned-int8 without narrow-convs-nchw", "pruned-int8", tried_prune / "2d.yaml", ()),
         ("f32-3d", "detect-f32 with narrow-convs-nchw", "f32", tried_prune / "3d.yaml", ()),
+        ("int8-narrow-3d", f"detect-int8 with {narrow} and narrow-convs-nchw", "int8-narrow", tried_prune / "3d.yaml", ()),
         # What a tract deployment ships: the same models in the forms `--target tract` chose
         # for tract on this machine (wide depthwise split, column tiles where they ran faster);
         # their blur maps are bound already.
@@ -735,10 +736,13 @@ def latency_640_full(ctx):
 
 def latency_256(ctx):
     """The trained width-0.25 v5 at its own 256x192: INT8 against float on both engines, one
-    interleaved loop, as `detect-int8` and `detect-int8` with `narrow_float: 16` compile it."""
+    interleaved loop, as `detect-int8` and `detect-int8` with `narrow_float: 16` (and then
+    narrow-convs-nchw) compile it."""
+    (ctx.dir / "3d.yaml").write_text("name: 3d\npasses: [narrow-convs-nchw]\n")
     plan = [("f32", "detect-f32", None, "passes/detect-f32.yaml"),
             ("int8", "detect-int8", "f32", own_passes(ctx, "detect-int8")),
-            ("int8-narrow", "detect-int8 with narrow_float: 16", "f32", own_passes(ctx, "detect-int8", "narrow_float: 16"))]
+            ("int8-narrow", "detect-int8 with narrow_float: 16", "f32", own_passes(ctx, "detect-int8", "narrow_float: 16")),
+            ("int8-narrow-3d", "detect-int8 with narrow_float: 16 and narrow-convs-nchw", "int8-narrow", ctx.dir / "3d.yaml")]
     for name, _, base, recipe in plan:
         compile_(ctx, MODELS["v5 w0.25"] if base is None else ctx.dir / base / "model.onnx", recipe, ctx.dir / name)
     c, _ = ctx.json([BIN, "profile", *[ctx.dir / name / "model.onnx" for name, *_ in plan], "--psf", PSF, "--runs", 200])

@@ -238,7 +238,8 @@ def latency(f):
                 f"`detect-pruned-f32` {o('pruned-f32'):.3f}× at {by[('pruned-f32', 'ort')]['macs_ratio']:.3f}× the MACs "
                 f"(goal ≤ 1.5× its MAC ratio), `detect-pruned-int8` {o('pruned-int8'):.3f}× (goal ≤ 0.5; "
                 f"{o('pruned-int8-all'):.3f}× without `narrow_float`); `detect-int8` with `narrow_float: 16` "
-                f"{o('int8-narrow'):.3f}×. tract against ONNX Runtime: "
+                f"{o('int8-narrow'):.3f}×" + (f", and with `narrow-convs-nchw` after it {o('int8-narrow-3d'):.3f}×" if ("int8-narrow-3d", "ort") in by else "")
+                + ". tract against ONNX Runtime: "
                 + ", ".join(f"`{v}` {t(v):.2f}×" for v in ("f32", "pruned-f32", "int8", "pruned-int8")) + "."]
     if ("pruned-f32-2d", "ort") in by:
         # narrow-convs-nchw's gain, within the same loop: each model against itself in 2-D.
@@ -284,7 +285,8 @@ def latency_256(f):
     return [f"{f['model']}, {f['runs']} interleaved runs on {f['threads']} threads:", ""] + \
         table(["variant", "engine", "ms", "against f32", "top operators"], rows) + \
         ["", f"On ONNX Runtime `detect-int8` runs at {by[('int8', 'ort')]['ratio']:.3f}× of `detect-f32` "
-             f"(goal: no slower, ≤ 1), with `narrow_float: 16` at {by[('int8-narrow', 'ort')]['ratio']:.3f}×."]
+             f"(goal: no slower, ≤ 1), with `narrow_float: 16` at {by[('int8-narrow', 'ort')]['ratio']:.3f}×"
+             + (f", and with `narrow-convs-nchw` after it at {by[('int8-narrow-3d', 'ort')]['ratio']:.3f}×" if ("int8-narrow-3d", "ort") in by else "") + "."]
 
 
 def latency_640_full(f):
