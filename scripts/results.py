@@ -612,6 +612,16 @@ def ship_640(model):
     return experiment
 
 
+def layout_recipes(folder):
+    """Two recipes, written into `folder`: one that takes narrow-convs-nchw's 3-D convolutions
+    out of a model (any pass after it lowers them; dce changes nothing else), one that puts
+    them in."""
+    folder.mkdir(exist_ok=True)
+    (folder / "2d.yaml").write_text("name: 2d\npasses: [dce]\n")
+    (folder / "3d.yaml").write_text("name: 3d\npasses: [narrow-convs-nchw]\n")
+    return folder / "2d.yaml", folder / "3d.yaml"
+
+
 def latency_640(ctx):
     """The trained width-0.25 v5 exported again at the camera's 640x480 (its own weights), compiled
     with the shipped recipes (recovery cut to a few steps: latency follows the structure, not
@@ -628,10 +638,9 @@ def latency_640(ctx):
     for name, text in tried.items():
         (tried_prune / f"detect-pruned-f32-{name}.yaml").write_text(text.replace("name: detect-pruned-f32", f"name: detect-pruned-f32-{name}"))
     narrow = "narrow_float: 16"
-    # narrow-convs-nchw measured both ways: taken out of the recipes that end with it (any
-    # pass after it lowers its 3-D convolutions; dce changes nothing else), put on detect-f32.
-    (tried_prune / "2d.yaml").write_text("name: 2d\npasses: [dce]\n")
-    (tried_prune / "3d.yaml").write_text("name: 3d\npasses: [narrow-convs-nchw]\n")
+    # narrow-convs-nchw measured both ways: taken out of the recipes that end with it, put on
+    # detect-f32 and on detect-int8 with narrow_float.
+    two_d, three_d = layout_recipes(tried_prune)
     # (variant, what it is, compiled from, recipe, compile's further arguments)
     plan = [
         ("f32", "detect-f32", None, "passes/detect-f32.yaml", ()),
@@ -642,10 +651,10 @@ def latency_640(ctx):
         ("pruned-int8-all", "detect-pruned-int8 with narrow_float: 0 (every layer a candidate)", "pruned-f32", own_passes(ctx, "detect-pruned-int8", "narrow_float: 0"), ()),
         ("pruned-f32-round16", "detect-pruned-f32 with round_to: 16", None, tried_prune / "detect-pruned-f32-round16.yaml", ()),
         ("pruned-f32-latency", "detect-pruned-f32 with target: {latency: 0.42}", None, tried_prune / "detect-pruned-f32-latency.yaml", ()),
-        ("pruned-f32-2d", "detect-pruned-f32 without narrow-convs-nchw", "pruned-f32", tried_prune / "2d.yaml", ()),
-        ("pruned-int8-2d", "detect-pruned-int8 without narrow-convs-nchw", "pruned-int8", tried_prune / "2d.yaml", ()),
-        ("f32-3d", "detect-f32 with narrow-convs-nchw", "f32", tried_prune / "3d.yaml", ()),
-        ("int8-narrow-3d", f"detect-int8 with {narrow} and narrow-convs-nchw", "int8-narrow", tried_prune / "3d.yaml", ()),
+        ("pruned-f32-2d", "detect-pruned-f32 without narrow-convs-nchw", "pruned-f32", two_d, ()),
+        ("pruned-int8-2d", "detect-pruned-int8 without narrow-convs-nchw", "pruned-int8", two_d, ()),
+        ("f32-3d", "detect-f32 with narrow-convs-nchw", "f32", three_d, ()),
+        ("int8-narrow-3d", f"detect-int8 with {narrow} and narrow-convs-nchw", "int8-narrow", three_d, ()),
         # What a tract deployment ships: the same models in the forms `--target tract` chose
         # for tract on this machine (wide depthwise split, column tiles where they ran faster);
         # their blur maps are bound already.
@@ -692,7 +701,7 @@ def latency_640_full(ctx):
              "--head", "v5", "--psf", "input", "--opset", "17", "--fold", "on"])
     model = next(folder.glob("*.onnx"))
     recipes = shortened(ctx)
-    (ctx.dir / "2d.yaml").write_text("name: 2d\npasses: [dce]\n")
+    two_d, _ = layout_recipes(ctx.dir)
     # Random weights put any INT8 model past the hard limit and the error budget, whose search
     # would then keep layers float that a trained model quantizes (the trained width-0.25
     # models keep none): both are off here.
@@ -708,8 +717,8 @@ def latency_640_full(ctx):
         ("int8", "detect-int8 (no error budget or hard limit)", "f32", unchecked("detect-int8")),
         ("pruned-f32", "detect-pruned-f32", None, recipes / "detect-pruned-f32.yaml"),
         ("pruned-int8", "detect-pruned-int8 (no error budget or hard limit)", "pruned-f32", unchecked("detect-pruned-int8")),
-        ("pruned-f32-2d", "detect-pruned-f32 without narrow-convs-nchw", "pruned-f32", ctx.dir / "2d.yaml"),
-        ("pruned-int8-2d", "detect-pruned-int8 without narrow-convs-nchw", "pruned-int8", ctx.dir / "2d.yaml"),
+        ("pruned-f32-2d", "detect-pruned-f32 without narrow-convs-nchw", "pruned-f32", two_d),
+        ("pruned-int8-2d", "detect-pruned-int8 without narrow-convs-nchw", "pruned-int8", two_d),
     ]
     macs, lifted = {}, {}
     for name, _, base, recipe in plan:
@@ -738,11 +747,11 @@ def latency_256(ctx):
     """The trained width-0.25 v5 at its own 256x192: INT8 against float on both engines, one
     interleaved loop, as `detect-int8` and `detect-int8` with `narrow_float: 16` (and then
     narrow-convs-nchw) compile it."""
-    (ctx.dir / "3d.yaml").write_text("name: 3d\npasses: [narrow-convs-nchw]\n")
+    _, three_d = layout_recipes(ctx.dir)
     plan = [("f32", "detect-f32", None, "passes/detect-f32.yaml"),
             ("int8", "detect-int8", "f32", own_passes(ctx, "detect-int8")),
             ("int8-narrow", "detect-int8 with narrow_float: 16", "f32", own_passes(ctx, "detect-int8", "narrow_float: 16")),
-            ("int8-narrow-3d", "detect-int8 with narrow_float: 16 and narrow-convs-nchw", "int8-narrow", ctx.dir / "3d.yaml")]
+            ("int8-narrow-3d", "detect-int8 with narrow_float: 16 and narrow-convs-nchw", "int8-narrow", three_d)]
     for name, _, base, recipe in plan:
         compile_(ctx, MODELS["v5 w0.25"] if base is None else ctx.dir / base / "model.onnx", recipe, ctx.dir / name)
     c, _ = ctx.json([BIN, "profile", *[ctx.dir / name / "model.onnx" for name, *_ in plan], "--psf", PSF, "--runs", 200])
