@@ -332,8 +332,12 @@ impl Pass for Quantize {
         let no_weights = HashMap::new();
         let weights = learned.as_ref().map_or(&no_weights, |l| &l.weights);
         clock.lap("rounding");
-        let with_shifts = |s: &HashMap<usize, Vec<f64>>| emit(&float, &base, &EmitOptions { params: &params, activations: o.activations, weight_bits: o.weight_bits, bias_shift: s, weights }).map(|(m, _)| m);
-        let measured_bias = if o.measured_bias { Some(crate::quant::output_bias::correct(&float, &graph, &base, &mut shifts, &analysis, threads, &with_shifts)?) } else { None };
+        let measured_bias = if o.measured_bias {
+            let (emitted, _) = emit(&float, &base, &EmitOptions { params: &params, activations: o.activations, weight_bits: o.weight_bits, bias_shift: &shifts, weights })?;
+            Some(crate::quant::output_bias::correct(&float, &graph, &base, &mut shifts, emitted, &analysis, threads)?)
+        } else {
+            None
+        };
         clock.lap("measured_bias");
         let collection = collection_cost(&float, &feeds, &stats, threads)?;
         clock.lap("plain_inference_for_comparison");

@@ -1,9 +1,9 @@
 //! Bias correction measured on the outputs: each quantized convolution's per-channel output
-//! mean in the emitted INT8 model against the float model's, on the calibration frames,
-//! subtracted from its bias. Weight rounding's shift is predicted from the input means
-//! (`params::weight_rounding_shift`); this one also takes in what the activations' rounding
-//! and clipping upstream moved (an `mse` range clips a tail, and every layer after it sees
-//! its mean move).
+//! mean in the emitted INT8 model against the float model's, on the frames it is given (the
+//! `quantize` pass's analysis frames), subtracted from its bias. Weight rounding's shift is
+//! predicted from the input means (`params::weight_rounding_shift`); this one also takes in
+//! what the activations' rounding and clipping upstream moved (an `mse` range clips a tail,
+//! and every layer after it sees its mean move).
 //!
 //! Level by level, from the input: a convolution's shift is measured once every convolution
 //! before it is corrected. Correcting all of them from one measurement counts the upstream
@@ -15,7 +15,10 @@ use super::plan::Plan;
 use crate::ir::Graph;
 use crate::onnx::proto::ModelProto;
 use crate::tensor::Tensor;
-use anyhow::Result;
+use crate::onnx::edit::{initializer, set_initializer};
+use crate::onnx::tensor_proto::{from_tensor, to_tensor};
+use crate::tensor::TensorData;
+use anyhow::{anyhow, bail, Result};
 use std::collections::HashMap;
 
 /// What it measured, in the outputs' own units.
@@ -34,15 +37,15 @@ pub struct Report {
 }
 
 /// Adds each planned convolution's measured shift into `shifts` (by node index, subtracted
-/// from the bias at emission); `emit` writes the INT8 model under `shifts`.
+/// from the bias at emission); `emitted` is the INT8 model under `shifts` as they were.
 pub fn correct(
     float: &ModelProto,
     graph: &Graph,
     plan: &Plan,
     shifts: &mut HashMap<usize, Vec<f64>>,
+    emitted: ModelProto,
     feeds: &[Vec<(String, Tensor)>],
     threads: usize,
-    emit: &dyn Fn(&HashMap<usize, Vec<f64>>) -> Result<ModelProto>,
 ) -> Result<Report> {
     let levels = levels(graph, plan);
     let channels: HashMap<String, usize> = levels.iter().flatten().map(|(v, _, c)| (v.clone(), *c)).collect();
@@ -50,6 +53,9 @@ pub fn correct(
         return Ok(Report::default());
     }
     let reference = statistics(float, &[], &channels, feeds, threads)?.channel_means;
+    // Each level's shifts go into its int32 biases in place (the caller emits the model it
+    // keeps from `shifts`, which rounds each bias once).
+    let mut model = emitted;
     let mut r = Report { levels: levels.len(), convolutions: channels.len(), ..Report::default() };
     let (mut shifted, mut left) = (Vec::new(), Vec::new());
     // Run k corrects level k and reads what is left at level k - 1, corrected in the run
@@ -63,20 +69,22 @@ pub fn correct(
         let now = levels.get(k).map_or(&[][..], |l| &l[..]);
         let before = k.checked_sub(1).map_or(&[][..], |j| &levels[j][..]);
         let wanted: HashMap<String, usize> = now.iter().chain(before).map(|(v, _, c)| (v.clone(), *c)).collect();
-        let measured = statistics(&emit(shifts)?, &[], &wanted, feeds, threads)?.channel_means;
+        let measured = statistics(&model, &[], &wanted, feeds, threads)?.channel_means;
         let diff = |v: &String| -> Vec<f64> { measured.get(v).zip(reference.get(v)).map_or(Vec::new(), |(q, f)| q.iter().zip(f).map(|(q, f)| q - f).collect()) };
         for (v, _, _) in before {
             left.extend(diff(v).into_iter().filter(|d| d.is_finite()).map(f64::abs));
         }
         for (v, node, c) in now {
             let shift = shifts.entry(*node).or_insert_with(|| vec![0.0; *c]);
-            for (s, d) in shift.iter_mut().zip(diff(v)).filter(|(_, d)| d.is_finite()) {
+            let d: Vec<f64> = diff(v).into_iter().map(|d| if d.is_finite() { d } else { 0.0 }).collect();
+            for (s, d) in shift.iter_mut().zip(&d) {
                 *s += d;
                 shifted.push(d.abs());
                 if d.abs() > r.largest_abs_shift {
                     (r.largest_abs_shift, r.largest_at) = (d.abs(), v.clone());
                 }
             }
+            lower_bias(&mut model, v, &d)?;
         }
     }
     let mean = |x: &[f64]| x.iter().sum::<f64>() / x.len().max(1) as f64;
@@ -84,6 +92,24 @@ pub fn correct(
     r.residual_mean_abs_shift = mean(&left);
     r.residual_largest_abs_shift = left.iter().copied().fold(0.0, f64::max);
     Ok(r)
+}
+
+/// Subtracts `shift` (per output channel, in the output's units) from the int32 bias of the
+/// convolution writing `output` in the emitted model, at its DequantizeLinear's scales.
+fn lower_bias(model: &mut ModelProto, output: &str, shift: &[f64]) -> Result<()> {
+    let g = model.graph.as_mut().ok_or_else(|| anyhow!("model has no graph"))?;
+    let conv = g.node.iter().find(|n| n.op_type == "Conv" && n.output.first().is_some_and(|o| o == output)).ok_or_else(|| anyhow!("no convolution writes '{output}'"))?;
+    let dq = conv.input.get(2).and_then(|b| g.node.iter().find(|n| n.op_type == "DequantizeLinear" && n.output[0] == *b)).ok_or_else(|| anyhow!("'{output}': its bias is not a DequantizeLinear"))?;
+    let (values, scales) = (dq.input[0].clone(), dq.input[1].clone());
+    let scale = to_tensor(initializer(g, &scales).ok_or_else(|| anyhow!("'{output}': no bias scale"))?)?.data.to_f64();
+    let mut bias = to_tensor(initializer(g, &values).ok_or_else(|| anyhow!("'{output}': no int32 bias"))?)?;
+    let TensorData::I32(b) = &mut bias.data else { bail!("'{output}': the bias is not int32") };
+    for (k, (b, d)) in b.iter_mut().zip(shift).enumerate() {
+        let s = scale.get(k).or(scale.first()).copied().unwrap_or(1.0);
+        *b = (*b as f64 - d / s).round().clamp(i32::MIN as f64, i32::MAX as f64) as i32;
+    }
+    set_initializer(g, from_tensor(&values, &bias));
+    Ok(())
 }
 
 /// The planned convolutions by level, each as (output, node, channels): a level's
