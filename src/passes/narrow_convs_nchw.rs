@@ -8,9 +8,9 @@
 //! convolution reads NCHW, so a reorder follows each one. A pruned encoder layer with 2
 //! output channels at 640x480 computes 16 and moves 8 times its bytes twice. The transform
 //! takes 4-D weights only, so a 3-D convolution stays on the NCHW kernels. Against the same
-//! model in 2-D, in one loop at 640x480 on 2 AVX-512 cores (three `latency-640` records):
-//! the pruned width-0.25 v5 in INT8 0.83x, 0.80x and 0.72x, in float 0.96x, 0.76x and 0.78x;
-//! the unpruned one 0.97x, 0.84x and 0.91x. The full-width pruned v5, with two such layers,
+//! model in 2-D, in one loop at 640x480 on 2 AVX-512 cores (four `latency-640` records):
+//! the pruned width-0.25 v5 in INT8 0.83x, 0.80x, 0.72x and 0.89x, in float 0.96x, 0.76x,
+//! 0.78x and 0.83x; the unpruned one 0.97x, 0.84x, 0.91x and 0.86x. The full-width pruned v5, with two such layers,
 //! gains nothing (record `latency-640-full`: 1.01x in float, 1.07x in INT8).
 //!
 //! The same products summed the same way (float noise, held to ONNX Runtime at rel L2
