@@ -10,13 +10,14 @@
 //! takes 4-D weights only, so a 3-D convolution stays on the NCHW kernels. Against the same
 //! model in 2-D, in one loop at 640x480 on 2 AVX-512 cores (four `latency-640` records):
 //! the pruned width-0.25 v5 in INT8 0.83x, 0.80x, 0.72x and 0.89x, in float 0.96x, 0.76x,
-//! 0.78x and 0.83x; the unpruned one 0.97x, 0.84x, 0.91x and 0.86x. The full-width pruned v5, with two such layers,
-//! gains nothing (record `latency-640-full`: 1.01x in float, 1.07x in INT8).
+//! 0.78x and 0.83x; the unpruned one 0.97x, 0.84x, 0.91x and 0.86x. The full-width pruned
+//! v5, with two such layers, gains nothing (record `latency-640-full`: 1.01x in float, 1.07x
+//! in INT8).
 //!
 //! The same products summed the same way (float noise, held to ONNX Runtime at rel L2
 //! 1e-6 by the test; in an INT8 model the noise flips a QuantizeLinear's rounding here and
-//! there, rel L2 about 1e-3). An activation that alone reads a convolution moves inside the pair,
-//! where ONNX Runtime fuses it. Every later pass gets 2-D convolutions back (the runner
+//! there, rel L2 about 1e-3). An activation that alone reads a convolution moves inside the
+//! pair, where ONNX Runtime fuses it. Every later pass gets 2-D convolutions back (the runner
 //! lowers them first, under their own names), and so do tract and its target: a recipe
 //! ends with this pass, and one built on such a recipe ends with it again.
 //! Needs: f32 weights in an initializer, a 2-D kernel. Reports: each convolution rewritten

@@ -13,11 +13,10 @@
 use super::collect::statistics;
 use super::plan::Plan;
 use crate::ir::Graph;
-use crate::onnx::proto::ModelProto;
-use crate::tensor::Tensor;
 use crate::onnx::edit::{initializer, set_initializer};
+use crate::onnx::proto::ModelProto;
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
-use crate::tensor::TensorData;
+use crate::tensor::{Tensor, TensorData};
 use anyhow::{anyhow, bail, Result};
 use std::collections::HashMap;
 
@@ -121,17 +120,17 @@ fn levels(graph: &Graph, plan: &Plan) -> Vec<Vec<(String, usize, usize)>> {
     for &i in &graph.order {
         let n = graph.node(i);
         let before = n.input.iter().filter_map(|v| depth.get(v.as_str())).copied().max().unwrap_or(0);
-        let conv = n.op_type == "Conv" && plan.quantized.contains(&i);
-        let channels = graph.initializers.get(n.input.get(1).map_or("", |s| s.as_str())).and_then(|w| w.dims.first()).map(|&c| c as usize);
-        let after = match (conv, channels) {
-            (true, Some(c)) => {
+        // A planned convolution's weights are an initializer; its output channels come first.
+        let channels = (n.op_type == "Conv" && plan.quantized.contains(&i)).then(|| graph.initializers.get(n.input.get(1)?.as_str())?.dims.first().map(|&c| c as usize)).flatten();
+        let after = match channels {
+            Some(c) => {
                 if out.len() <= before {
                     out.resize_with(before + 1, Vec::new);
                 }
                 out[before].push((n.output[0].clone(), i, c));
                 before + 1
             }
-            _ => before,
+            None => before,
         };
         for o in &n.output {
             depth.insert(o.as_str(), after);
