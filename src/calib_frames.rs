@@ -111,7 +111,7 @@ pub fn image_feeds_from(graph: &Graph, inf: &Inferred, folder: Option<&Path>, fi
         bail!("input '{}' has no calibration value; run bind-psf (with --psf) first", other.name);
     }
     let s = inf.shape(&image).ok_or_else(|| anyhow!("image input '{image}' has no static shape"))?;
-    let channels = usize::try_from(s[1]).ok().filter(|&c| (1..=16).contains(&c)).ok_or_else(|| anyhow!("image input '{image}' has {} channels; expected 1 to 16", s[1]))?;
+    let channels = Some(s[1]).filter(|&c| (1..=16).contains(&c)).ok_or_else(|| anyhow!("image input '{image}' has {} channels; expected 1 to 16", s[1]))?;
     let set = calibration_frames_from(folder, first, n, s[2], s[3], seed)?;
     if channels > 1 {
         crate::warn::warn(format!("image input '{image}' takes {channels} channels; each single-channel calibration frame is replicated into all of them (thermal frames stored as RGB)"));

@@ -48,7 +48,7 @@ pub fn toolkit_python() -> Result<PathBuf> {
             }
             std::thread::sleep(std::time::Duration::from_secs(1));
             let t = started.elapsed().as_secs();
-            if t > 0 && t % 30 == 0 {
+            if t > 0 && t.is_multiple_of(30) {
                 eprintln!("  still installing ({t} s; {:.1} GB so far)", dir_bytes(&venv) as f64 / 1e9);
             }
         };

@@ -26,7 +26,7 @@ impl ModelInput {
         let image_input = partition::image_input(&graph, &inf).ok_or_else(|| anyhow!("{what} has no [1, C, H, W] image input"))?;
         let s = inf.shape(&image_input).ok_or_else(|| anyhow!("{what}'s image input '{image_input}' has no static shape"))?;
         let other_inputs = graph.inputs.iter().map(|v| v.name.clone()).filter(|n| *n != image_input).collect();
-        let channels = usize::try_from(s[1]).ok().filter(|&c| (1..=16).contains(&c)).ok_or_else(|| anyhow!("{what}'s image input '{image_input}' has {} channels; expected 1 to 16", s[1]))?;
+        let channels = Some(s[1]).filter(|&c| (1..=16).contains(&c)).ok_or_else(|| anyhow!("{what}'s image input '{image_input}' has {} channels; expected 1 to 16", s[1]))?;
         Ok(ModelInput { shape: (s[2], s[3]), channels, image_input, other_inputs })
     }
 }

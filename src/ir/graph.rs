@@ -192,7 +192,7 @@ fn check_initializer(t: &TensorProto) -> Result<()> {
             _ => t.int32_data.len(),
         }
     };
-    let raw_ok = t.raw_data.is_empty() || dt == DType::Str || t.raw_data.len() % dt.size_of() == 0;
+    let raw_ok = t.raw_data.is_empty() || dt == DType::Str || t.raw_data.len().is_multiple_of(dt.size_of());
     if stored != n || !raw_ok {
         bail!("initializer '{}' ({}) claims shape {:?} ({n} values) but stores {stored}", t.name, onnx_dtype_name(t.data_type), t.dims);
     }

@@ -29,7 +29,7 @@ pub fn to_tensor(t: &TensorProto) -> Result<Tensor> {
     let n = element_count(&t.dims).map_err(|e| anyhow::anyhow!("tensor '{}': {e}", t.name))?;
     let shape: Vec<usize> = t.dims.iter().map(|&d| d as usize).collect();
     let data = if !t.raw_data.is_empty() || (n == 0 && dtype != DType::Str) {
-        let want = n.checked_mul(dtype.size_of()).unwrap_or(usize::MAX);
+        let want = n.saturating_mul(dtype.size_of());
         if dtype == DType::Str || t.raw_data.len() != want {
             bail!("tensor '{}': raw_data holds {} bytes, shape {:?} of {} needs {want}", t.name, t.raw_data.len(), t.dims, onnx_dtype_name(t.data_type));
         }

@@ -79,7 +79,7 @@ impl PsfSet {
         if a.shape != [rows * cols, k, k] {
             bail!("{}/psfs.npy has shape {:?}; psf.yaml says {} kernels of {k}x{k}", dir.display(), a.shape, rows * cols);
         }
-        if k % 2 == 0 {
+        if k.is_multiple_of(2) {
             bail!("kernel size {k} must be odd (kernels centre on a pixel)");
         }
         let kernels: Vec<Vec<f32>> = a.data.chunks_exact(k * k).map(|c| c.to_vec()).collect();

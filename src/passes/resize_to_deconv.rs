@@ -33,7 +33,7 @@ fn block_copy_factors(n: &NodeProto, input: &[usize], output: &[usize]) -> Resul
     if !exact {
         return Err(format!("mode {mode}/{ctm}/{nearest} is not a plain block copy"));
     }
-    if output[0] != input[0] || output[1] != input[1] || output[2] % input[2] != 0 || output[3] % input[3] != 0 {
+    if output[0] != input[0] || output[1] != input[1] || !output[2].is_multiple_of(input[2]) || !output[3].is_multiple_of(input[3]) {
         return Err(format!("{input:?} -> {output:?} is not an integer upsampling"));
     }
     let (sh, sw) = (output[2] / input[2], output[3] / input[3]);

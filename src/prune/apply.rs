@@ -148,7 +148,7 @@ fn slice_conv_weight(op: &str, w: &Tensor, group: usize, xs: &[usize], ys: &[usi
         let (rows, cols) = if op == "Conv" { (ys, xs) } else { (xs, ys) };
         return Ok((w.select(0, rows).and_then(|t| t.select(1, cols)).ok_or_else(bad)?, 1));
     }
-    let depthwise = w.shape[1] == 1 && xs.len() == ys.len() && (if op == "Conv" { w.shape[0] } else { w.shape[0] }) == group;
+    let depthwise = w.shape[1] == 1 && xs.len() == ys.len() && w.shape[0] == group;
     if depthwise {
         // Input and output channels are coupled: one row per kept channel.
         return Ok((w.select(0, ys).ok_or_else(bad)?, ys.len()));

@@ -54,7 +54,7 @@ fn keep_count(n: usize, target: f64, round_to: usize, segments: usize) -> (usize
     let mut keep = ((target / step as f64).round() as usize).max(1) * step;
     keep = keep.min(n);
     let note = (round_to > 1 && n < 2 * round_to).then(|| format!("{n} channels: too few to keep a multiple of {round_to}, rounded to {step}"));
-    if keep % seg != 0 {
+    if !keep.is_multiple_of(seg) {
         keep = n;
     }
     (keep, note)

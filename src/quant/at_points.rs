@@ -48,7 +48,7 @@ pub fn emit(model: &ModelProto, points: &BTreeMap<String, (f64, i32)>) -> Result
     let outputs: Vec<String> = g.output.iter().map(|o| o.name.clone()).collect();
     let params = |v: &str| points.get(v).map(|&(scale, zero_point)| QParams { scale, zero_point, qmin: -128, qmax: 127 });
     let mut dequantized = BTreeMap::new();
-    for (v, _) in points {
+    for v in points.keys() {
         let p = params(v).expect("a point");
         let dq = if outputs.contains(v) {
             // The producer writes a fresh value; the pair ends in the output's own name, which

@@ -107,6 +107,28 @@ pub fn quantize_bias(b: &[f32], input_scale: f64, weight_scales: &[f64]) -> (Vec
     (values, scales, clamped)
 }
 
+/// Mean output shift per output channel that weight rounding causes: sum over each filter of
+/// (W_q - W) * E[x] for its input channel (data-free bias correction, Nagel et al. 2019; the
+/// zero padding at the borders is ignored). `shape` is [O, I/group, kh, kw].
+pub fn weight_rounding_shift(w: &[f32], shape: &[usize], group: usize, q: &QuantizedWeights, input_means: &[f64]) -> Vec<f64> {
+    let (out, per_group_in) = (shape[0], shape.get(1).copied().unwrap_or(1));
+    let taps: usize = shape.iter().skip(2).product::<usize>().max(1);
+    let out_per_group = (out / group.max(1)).max(1);
+    (0..out)
+        .map(|o| {
+            let s = q.scales[o];
+            let first_input = (o / out_per_group) * per_group_in;
+            (0..per_group_in)
+                .map(|i| {
+                    let mean = input_means.get(first_input + i).copied().unwrap_or(0.0);
+                    let base = (o * per_group_in + i) * taps;
+                    (base..base + taps).map(|k| q.values[k] as f64 * s - w[k] as f64).sum::<f64>() * mean
+                })
+                .sum()
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -128,26 +150,4 @@ mod tests {
         assert_eq!(q.values, vec![127, -64, 0, 0, 127, 64]);
         assert_eq!(q.scales[1], 1.0, "an all-zero channel gets a finite scale");
     }
-}
-
-/// Mean output shift per output channel that weight rounding causes: sum over each filter of
-/// (W_q - W) * E[x] for its input channel (data-free bias correction, Nagel et al. 2019; the
-/// zero padding at the borders is ignored). `shape` is [O, I/group, kh, kw].
-pub fn weight_rounding_shift(w: &[f32], shape: &[usize], group: usize, q: &QuantizedWeights, input_means: &[f64]) -> Vec<f64> {
-    let (out, per_group_in) = (shape[0], shape.get(1).copied().unwrap_or(1));
-    let taps: usize = shape.iter().skip(2).product::<usize>().max(1);
-    let out_per_group = (out / group.max(1)).max(1);
-    (0..out)
-        .map(|o| {
-            let s = q.scales[o];
-            let first_input = (o / out_per_group) * per_group_in;
-            (0..per_group_in)
-                .map(|i| {
-                    let mean = input_means.get(first_input + i).copied().unwrap_or(0.0);
-                    let base = (o * per_group_in + i) * taps;
-                    (base..base + taps).map(|k| q.values[k] as f64 * s - w[k] as f64).sum::<f64>() * mean
-                })
-                .sum()
-        })
-        .collect()
 }

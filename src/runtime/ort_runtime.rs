@@ -155,7 +155,7 @@ fn from_ort(v: &DynValue) -> Result<Tensor> {
         other => bail!("non-tensor value ({other:?}) is not supported"),
     };
     // An empty tensor has no data pointer for ort to make a slice of (debug builds abort).
-    let empty = shape.iter().any(|&d| d == 0);
+    let empty = shape.contains(&0);
     macro_rules! prim {
         ($t:ty, $variant:ident) => {{
             if empty {

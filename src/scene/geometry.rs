@@ -198,7 +198,7 @@ fn crop_constant(t: &Tensor, out: &[usize], [fh, fw]: [usize; 2], levels: &[Leve
     let total: usize = levels.iter().map(|l| l.height * l.width).sum();
     for a in 0..rank {
         let d = t.shape[a];
-        if d < 2 || out[a + shift] != d || d % total != 0 {
+        if d < 2 || out[a + shift] != d || !d.is_multiple_of(total) {
             continue;
         }
         let idx = candidate_index(levels, &cut.keep, cut.window, d / total);
@@ -292,7 +292,7 @@ pub fn reshape_target(old_in: &[usize], old_out: &[usize], new_in: &[usize]) -> 
         } else {
             let fits: Vec<usize> = (j0..j).filter(|&b| {
                 let rest = pj / old_out[b] as u64;
-                rest > 0 && np % rest == 0 && np / rest != old_out[b] as u64
+                rest > 0 && np.is_multiple_of(rest) && np / rest != old_out[b] as u64
             }).collect();
             let [b] = fits[..] else { return None };
             out[b] = (np / (pj / old_out[b] as u64)) as i64;

@@ -281,11 +281,11 @@ impl Plan {
 /// Where `value` lies in the full model, when its stride divides the ROI.
 pub(super) fn place(inf: &crate::ir::Inferred, value: &str, roi: Roi, frame: [usize; 2]) -> Option<Place> {
     let s = inf.shape(value)?;
-    if s.len() != 4 || s[0] != 1 || s[2] == 0 || s[3] == 0 || frame[0] % s[2] != 0 || frame[1] % s[3] != 0 {
+    if s.len() != 4 || s[0] != 1 || s[2] == 0 || s[3] == 0 || !frame[0].is_multiple_of(s[2]) || !frame[1].is_multiple_of(s[3]) {
         return None;
     }
     let (sy, sx) = (frame[0] / s[2], frame[1] / s[3]);
-    if roi.y % sy != 0 || roi.h % sy != 0 || roi.x % sx != 0 || roi.w % sx != 0 {
+    if !roi.y.is_multiple_of(sy) || !roi.h.is_multiple_of(sy) || !roi.x.is_multiple_of(sx) || !roi.w.is_multiple_of(sx) {
         return None;
     }
     let begin = [roi.y / sy, roi.x / sx];
@@ -296,7 +296,7 @@ pub(super) fn place(inf: &crate::ir::Inferred, value: &str, roi: Roi, frame: [us
 /// Appends one frame's edge and strip (rows or columns past side `s`).
 fn accumulate(strip: &mut Strip, s: usize, p: &Place, data: &[f32]) {
     let (h, w) = (p.full[0], p.full[1]);
-    let rows = s % 2 == 0;
+    let rows = s.is_multiple_of(2);
     let at = |c: usize, k: usize, a: usize| if rows { data[(c * h + k) * w + a] } else { data[(c * h + a) * w + k] };
     // The edge's index on the strip's axis, and the index `j` steps past it.
     let edge = match s {

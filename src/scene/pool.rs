@@ -103,7 +103,7 @@ impl Pools {
     pub fn take_means(&mut self, value: &str, f: usize, data: &[f32]) {
         for k in (0..self.nodes.len()).filter(|&k| self.nodes[k].1 == value) {
             let s = &mut self.samples[k];
-            if s.channels == 0 || data.len() % s.channels != 0 || s.roi[0].len() <= f {
+            if s.channels == 0 || !data.len().is_multiple_of(s.channels) || s.roi[0].len() <= f {
                 continue;
             }
             let plane = data.len() / s.channels;

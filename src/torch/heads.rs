@@ -22,7 +22,7 @@ pub fn head_specs(model: &ModelProto) -> Result<Vec<serde_json::Value>> {
         let channels = n.input.get(1).and_then(|w| graph.initializers.get(w.as_str())).and_then(|w| w.dims.first()).copied().unwrap_or(0) as usize;
         let value = n.output[0].clone();
         let spec = match head.kind {
-            HeadKind::Yolov5Anchor if channels % (5 + nc) == 0 => serde_json::json!({"value": value, "kind": "v5", "anchors": channels / (5 + nc), "outputs": 5 + nc}),
+            HeadKind::Yolov5Anchor if channels.is_multiple_of(5 + nc) => serde_json::json!({"value": value, "kind": "v5", "anchors": channels / (5 + nc), "outputs": 5 + nc}),
             HeadKind::Yolov8Dfl if Some(channels) == head.reg_max.map(|r| 4 * r) => serde_json::json!({"value": value, "kind": "v8box", "reg_max": head.reg_max}),
             HeadKind::Yolov8Dfl if channels == nc => serde_json::json!({"value": value, "kind": "v8cls"}),
             _ => bail!("head convolution '{}' ({channels} channels) does not fit a {:?} head with {nc} classes; recover cannot read it", n.name, head.kind),

@@ -77,7 +77,7 @@ impl Schedule {
         if !(1..=64).contains(&self.devices) {
             bail!("{within}devices must be 1 to 64 (got {})", self.devices);
         }
-        if self.batch % self.devices != 0 {
+        if !self.batch.is_multiple_of(self.devices) {
             bail!("{within}batch ({}) must divide among the devices ({}): each takes an equal share of every batch", self.batch, self.devices);
         }
         Ok(())

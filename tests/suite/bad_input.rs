@@ -327,7 +327,7 @@ fn malformed_recipes_are_refused_before_any_pass_runs() {
         ("a time cap of zero minutes", format!("{lossless}{prune}  - recover: {{steps: 10, minutes: 0}}\n"), vec![], "minutes (a time cap) must be a positive number"),
         ("an average that never moves", format!("{lossless}{prune}  - recover: {{steps: 10, ema: 1.0}}\n"), vec![], "ema (the average's decay) must be at least 0 and below 1 (got 1)"),
         ("a qat lr of zero", format!("{lossless}  - quantize: {{qat: {{lr: 0}}}}\n"), vec![], "qat: lr must be a positive number"),
-        ("a missing --psf file", format!("{lossless}"), vec!["--psf", "/no/such/psf.npy"], "/no/such/psf.npy"),
+        ("a missing --psf file", lossless.to_string(), vec!["--psf", "/no/such/psf.npy"], "/no/such/psf.npy"),
     ];
     for (what, passes, extra, needle) in cases {
         let recipe = dir.path().join("bad.yaml");
