@@ -390,6 +390,9 @@ DIRECTIONS = {
                PRUNE + RECOVER.replace("lr: 2.0e-3", "lr: 3.0e-3")),
     "lr4e-3": ("recovery's learning rate 4e-3 instead of 2e-3 (3e-3 rose the v8 from 0.929x to 0.940x)",
                PRUNE + RECOVER.replace("lr: 2.0e-3", "lr: 4.0e-3")),
+    "frames4096": ("4096 training frames instead of 2048, the same steps (2048 instead of 512 rose the v8 by 0.018 "
+                   "of mAP and lowered its held-out loss from 4.90 to 4.09)",
+                   PRUNE + RECOVER.replace("frames: 2048", "frames: 4096")),
     "v5-edges": ("the YOLOv5 box sides' absolute error in recovery (`v5_box_edges: 16`), as YOLOv8's box edges",
                  PRUNE + RECOVER.replace("frames: 2048}", "frames: 2048, v5_box_edges: 16}")),
     "box-iou": ("1 − IoU between the student's and the teacher's YOLOv8 boxes in recovery (`box_iou: 16`), "
