@@ -164,8 +164,8 @@ def int8(ctx):
 INT8_OPTIONS = [
     ("8-bit weights", "weight_bits: 7", "weight_bits: 8"),
     ("error budget 0.01", "error_budget: 0.1", "error_budget: 0.01"),
-    ("narrow float 16", "error_budget: 0.1}", "error_budget: 0.1, narrow_float: 16}"),
-    ("measured bias", "error_budget: 0.1}", "error_budget: 0.1, measured_bias: true}"),
+    ("narrow float 0, 2-D (the recipe before)", "narrow_float: 16}\n  - narrow-convs-nchw\n", "narrow_float: 0}\n"),
+    ("measured bias", "narrow_float: 16}", "narrow_float: 16, measured_bias: true}"),
 ]
 
 
@@ -194,22 +194,23 @@ SEEDS = range(4)
 
 
 def int8_seeds(ctx):
-    """How far INT8's mAP moves with the calibration frames alone: detect-int8 as shipped and in
-    its narrow form (`narrow_float: 16`, then `narrow-convs-nchw`), each calibrated on the
-    simulated frames of several seeds, on the trained width-0.25 models against labels."""
+    """How far INT8's mAP moves with the calibration frames alone: detect-int8 as shipped (narrow
+    convolutions float, in 3-D) and with every layer a candidate in 2-D (`narrow_float: 0`, the
+    recipe before), each calibrated on the simulated frames of several seeds, on the trained
+    width-0.25 models against labels."""
     text = (ROOT / "passes/detect-int8.yaml").read_text()
-    old = "error_budget: 0.1}\n"
+    old = "narrow_float: 16}\n  - narrow-convs-nchw\n"
     if not text.endswith(old):
-        raise Failed(f"detect-int8 no longer ends with '{old.strip()}'")
-    forms = {"shipped": lambda s: f"error_budget: 0.1, seed: {s}}}\n",
-             "narrow": lambda s: f"error_budget: 0.1, narrow_float: 16, seed: {s}}}\n  - narrow-convs-nchw\n"}
+        raise Failed("detect-int8 no longer ends with narrow_float: 16 and narrow-convs-nchw")
+    forms = {"shipped": lambda s: f"narrow_float: 16, seed: {s}}}\n  - narrow-convs-nchw\n",
+             "every layer, 2-D": lambda s: f"narrow_float: 0, seed: {s}}}\n"}
     rows = []
     for m in ("v5 w0.25", "v8 w0.25"):
         for seed in SEEDS:
             for form, passes in forms.items():
-                recipe = ctx.dir / f"{slug(m)}-{form}-{seed}.yaml"
+                recipe = ctx.dir / f"{slug(m)}-{slug(form)}-{seed}.yaml"
                 recipe.write_text(text[:-len(old)] + passes(seed))
-                out = ctx.dir / slug(m) / f"{form}-{seed}"
+                out = ctx.dir / slug(m) / f"{slug(form)}-{seed}"
                 compile_(ctx, MODELS[m], recipe, out)
                 rows.append({"model": m, "form": form, "seed": seed, **verify(ctx, MODELS[m], out / "model.onnx")})
     return {"rows": rows}
@@ -670,15 +671,14 @@ def latency_640(ctx):
              "latency": re.sub(r"target: \{macs: [0-9.]+\}", "target: {latency: 0.42}", pruned_text)}
     for name, text in tried.items():
         (tried_prune / f"detect-pruned-f32-{name}.yaml").write_text(text.replace("name: detect-pruned-f32", f"name: detect-pruned-f32-{name}"))
-    narrow = "narrow_float: 16"
     # narrow-convs-nchw measured both ways: taken out of the recipes that end with it, put on
-    # detect-f32 and on detect-int8 with narrow_float.
+    # detect-f32.
     two_d, three_d = layout_recipes(tried_prune)
     # (variant, what it is, compiled from, recipe, compile's further arguments)
     plan = [
         ("f32", "detect-f32", None, "passes/detect-f32.yaml", ()),
         ("int8", "detect-int8", "f32", own_passes(ctx, "detect-int8"), ()),
-        ("int8-narrow", f"detect-int8 with {narrow}", "f32", own_passes(ctx, "detect-int8", narrow), ()),
+        ("int8-all", "detect-int8 with narrow_float: 0 (every layer a candidate)", "f32", own_passes(ctx, "detect-int8", "narrow_float: 0"), ()),
         ("pruned-f32", "detect-pruned-f32", None, recipes / "detect-pruned-f32.yaml", ()),
         ("pruned-int8", "detect-pruned-int8", "pruned-f32", own_passes(ctx, "detect-pruned-int8"), ()),
         ("pruned-int8-all", "detect-pruned-int8 with narrow_float: 0 (every layer a candidate)", "pruned-f32", own_passes(ctx, "detect-pruned-int8", "narrow_float: 0"), ()),
@@ -686,8 +686,8 @@ def latency_640(ctx):
         ("pruned-f32-latency", "detect-pruned-f32 with target: {latency: 0.42}", None, tried_prune / "detect-pruned-f32-latency.yaml", ()),
         ("pruned-f32-2d", "detect-pruned-f32 without narrow-convs-nchw", "pruned-f32", two_d, ()),
         ("pruned-int8-2d", "detect-pruned-int8 without narrow-convs-nchw", "pruned-int8", two_d, ()),
+        ("int8-2d", "detect-int8 without narrow-convs-nchw", "int8", two_d, ()),
         ("f32-3d", "detect-f32 with narrow-convs-nchw", "f32", three_d, ()),
-        ("int8-narrow-3d", f"detect-int8 with {narrow} and narrow-convs-nchw", "int8-narrow", three_d, ()),
         # What a tract deployment ships: the same models in the forms `--target tract` chose
         # for tract on this machine (wide depthwise split, column tiles where they ran faster);
         # their blur maps are bound already.
@@ -778,13 +778,13 @@ def latency_640_full(ctx):
 
 def latency_256(ctx):
     """The trained width-0.25 v5 at its own 256x192: INT8 against float on both engines, one
-    interleaved loop, as `detect-int8` and `detect-int8` with `narrow_float: 16` (and then
-    narrow-convs-nchw) compile it."""
-    _, three_d = layout_recipes(ctx.dir)
+    interleaved loop, as `detect-int8` compiles it, without its 3-D convolutions, and with
+    every layer a candidate in 2-D (`narrow_float: 0`, the recipe before)."""
+    two_d, _ = layout_recipes(ctx.dir)
     plan = [("f32", "detect-f32", None, "passes/detect-f32.yaml"),
             ("int8", "detect-int8", "f32", own_passes(ctx, "detect-int8")),
-            ("int8-narrow", "detect-int8 with narrow_float: 16", "f32", own_passes(ctx, "detect-int8", "narrow_float: 16")),
-            ("int8-narrow-3d", "detect-int8 with narrow_float: 16 and narrow-convs-nchw", "int8-narrow", three_d)]
+            ("int8-2d", "detect-int8 without narrow-convs-nchw", "int8", two_d),
+            ("int8-all", "detect-int8 with narrow_float: 0 (every layer a candidate)", "f32", own_passes(ctx, "detect-int8", "narrow_float: 0"))]
     for name, _, base, recipe in plan:
         compile_(ctx, MODELS["v5 w0.25"] if base is None else ctx.dir / base / "model.onnx", recipe, ctx.dir / name)
     c, _ = ctx.json([BIN, "profile", *[ctx.dir / name / "model.onnx" for name, *_ in plan], "--psf", PSF, "--runs", 200])

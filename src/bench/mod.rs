@@ -109,7 +109,7 @@ pub fn bench(req: &BenchRequest) -> Result<BenchReport> {
         Ok(p)
     };
     let fp16 = write_recipe("fp16", &last_pass_of(recipe("detect-fp16"), "fp16")?)?;
-    let int8 = write_recipe("int8", &last_pass_of(recipe("detect-int8"), "int8")?)?;
+    let int8 = write_recipe("int8", &own_passes_of(recipe("detect-int8"), "int8")?)?;
     let pruned_int8 = write_recipe("pruned-int8", &own_passes_of(recipe("detect-pruned-int8"), "pruned-int8")?)?;
     let stages = [
         ("f32", None, write_recipe("f32", recipe("detect-f32"))?),

@@ -42,7 +42,8 @@ const FLAT: &[(&str, &[&str])] = &[
         "resize-to-deconv",
         "dce",
         "cleanup",
-        "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1}",
+        "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1, narrow_float: 16}",
+        "narrow-convs-nchw",
     ]),
     ("detect-int8-learned", &[
         "promote-constants",

@@ -35,7 +35,7 @@ fn robust_calibration_covers_its_conditions() {
     let text = recipe_edit("passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 16, analysis_frames: 4, held_out_frames: 4");
     let with = |conditions: &str| {
         let p = d.join(format!("r{}.yaml", conditions.len()));
-        std::fs::write(&p, text.replace("error_budget: 0.1}", &format!("error_budget: 0.1, calib_conditions: [{conditions}]}}"))).unwrap();
+        std::fs::write(&p, text.replace("narrow_float: 16}", &format!("narrow_float: 16, calib_conditions: [{conditions}]}}"))).unwrap();
         p
     };
     let plain = d.join("plain.yaml");
