@@ -21,6 +21,13 @@ fn variant(dir: &Path, recipe: &str, from: &str, to: &str) -> String {
     path.to_str().unwrap().to_string()
 }
 
+/// detect-int8 with every convolution a candidate for INT8 (`narrow_float: 0`, which leaves its
+/// 3-D rewrite nothing to do): these tests are about the quantizer on every layer, and most of
+/// the fixtures' layers are narrower than the 16 channels the recipe keeps float.
+fn every_layer(dir: &Path) -> String {
+    variant(dir, "passes/detect-int8.yaml", "narrow_float: 16}\n  - narrow-convs-nchw\n", "narrow_float: 0}\n")
+}
+
 /// `pdi-compile compile model --pipeline recipe --psf PSF -o out --json extra...`.
 fn run_compile(model: &str, recipe: &str, out: &Path, extra: &[&str]) -> CliResult {
     let mut args = vec!["compile", model, "--pipeline", recipe, "--psf", PSF, "-o", out.to_str().unwrap(), "--json"];
@@ -103,7 +110,7 @@ fn int8_fixtures_fuse_into_integer_kernels_and_stay_close_per_channel_group() {
     let dir = tempfile::tempdir().unwrap();
     // The fixtures' random weights leave INT8 objectness at cosine ~0.7 against float: this
     // test is about the kernels ORT fuses, so the hard limit is lifted (it has its own test).
-    let recipe = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 16, hard_limit: {max_rel_l2: 1.0e9, min_cosine: -1}");
+    let recipe = variant(dir.path(), &every_layer(dir.path()), "calib_frames: 64", "calib_frames: 16, hard_limit: {max_rel_l2: 1.0e9, min_cosine: -1}");
     for fixture in [V5, V8] {
         let out = dir.path().join(Path::new(fixture).file_stem().unwrap());
         let q = compile(fixture, &recipe, &out, &[]);
@@ -140,7 +147,7 @@ fn degenerate_calibration_sets_give_finite_scales_or_a_clear_refusal() {
     let dir = tempfile::tempdir().unwrap();
     // Frames this unlike the model's input give an INT8 model past the hard limit (exit 1,
     // its own test); here the scales are what is checked, so the limit is lifted.
-    let recipe = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 4, analysis_frames: 2, held_out_frames: 2, hard_limit: {max_rel_l2: 1.0e9, min_cosine: -1}");
+    let recipe = variant(dir.path(), &every_layer(dir.path()), "calib_frames: 64", "calib_frames: 4, analysis_frames: 2, held_out_frames: 2, hard_limit: {max_rel_l2: 1.0e9, min_cosine: -1}");
     let (w, h) = (256, 192);
     let (zeros, dark, outliers) = (dir.path().join("zeros"), dir.path().join("dark"), dir.path().join("outliers"));
     for d in [&zeros, &dark, &outliers] {
@@ -171,7 +178,7 @@ fn degenerate_calibration_sets_give_finite_scales_or_a_clear_refusal() {
 #[test]
 fn mixed_precision_keeps_the_most_sensitive_layers_float_until_the_budget_holds() {
     let dir = tempfile::tempdir().unwrap();
-    let small = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 8, max_float_layers: 3");
+    let small = variant(dir.path(), &every_layer(dir.path()), "calib_frames: 64", "calib_frames: 8, max_float_layers: 3");
     let impossible = variant(dir.path(), &small, "error_budget: 0.1", "error_budget: 0.0");
     let r = run_compile(V5, &impossible, &dir.path().join("impossible"), &[]);
     assert_eq!(r.code, 0, "{}", r.stderr);
@@ -202,7 +209,7 @@ fn mixed_precision_keeps_the_most_sensitive_layers_float_until_the_budget_holds(
 #[test]
 fn measured_bias_brings_every_convolutions_output_mean_to_floats() {
     let dir = tempfile::tempdir().unwrap();
-    let plain = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64, bias_correction: true, error_budget: 0.1", "calib_frames: 16, bias_correction: true, error_budget: 10.0");
+    let plain = variant(dir.path(), &every_layer(dir.path()), "calib_frames: 64, bias_correction: true, error_budget: 0.1", "calib_frames: 16, bias_correction: true, error_budget: 10.0");
     let measured = variant(dir.path(), &plain, "error_budget: 10.0", "error_budget: 10.0, measured_bias: true");
     let (a, b) = (dir.path().join("plain"), dir.path().join("measured"));
     let qa = compile(TINY, &plain, &a, &[]);
@@ -235,7 +242,7 @@ fn measured_bias_brings_every_convolutions_output_mean_to_floats() {
 #[test]
 fn float_where_faster_tries_the_heaviest_convolutions_and_follows_the_timings() {
     let dir = tempfile::tempdir().unwrap();
-    let recipe = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 8, float_where_faster: true");
+    let recipe = variant(dir.path(), &every_layer(dir.path()), "calib_frames: 64", "calib_frames: 8, float_where_faster: true");
     let q = compile(V5, &recipe, &dir.path().join("q"), &[]);
     let s = &q["float_where_faster"];
     let tried = s["tried"].as_array().unwrap();
@@ -271,7 +278,7 @@ fn float_where_faster_tries_the_heaviest_convolutions_and_follows_the_timings() 
 #[test]
 fn qlinear_form_runs_alike_on_tract_and_ort() {
     let dir = tempfile::tempdir().unwrap();
-    let recipe = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 8, max_float_layers: 0, format: qlinear");
+    let recipe = variant(dir.path(), &every_layer(dir.path()), "calib_frames: 64", "calib_frames: 8, max_float_layers: 0, format: qlinear");
     let out = dir.path().join("qlinear");
     let q = compile(TINY, &recipe, &out, &[]);
     assert!(q["qlinear_convolutions"].as_u64().unwrap() >= 10, "{}", q["qlinear_convolutions"]);
@@ -313,7 +320,7 @@ fn int8_beats_ort_quantize_static_on_every_channel_group() {
 #[test]
 fn learned_rounding_moves_weights_one_step_and_lowers_layer_error() {
     let dir = tempfile::tempdir().unwrap();
-    let fast = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 8");
+    let fast = variant(dir.path(), &every_layer(dir.path()), "calib_frames: 64", "calib_frames: 8");
     let nearest = variant(dir.path(), &fast, "error_budget: 0.1", "error_budget: 10.0");
     let learned = variant(dir.path(), &nearest, "error_budget: 10.0", "error_budget: 10.0, rounding: learned, rounding_iterations: 100, rounding_frames: 8");
     let (a, b) = (dir.path().join("nearest"), dir.path().join("learned"));
@@ -391,7 +398,7 @@ fn quantization_aware_recovery_trains_the_emitted_integers() {
 #[test]
 fn qat_on_two_gloo_ranks_trains_the_integers_of_one_process() {
     let dir = tempfile::tempdir().unwrap();
-    let fast = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 32");
+    let fast = variant(dir.path(), &every_layer(dir.path()), "calib_frames: 64", "calib_frames: 32");
     let mut runs = Vec::new();
     for devices in [1, 2] {
         let recipe = variant(dir.path(), &fast, "error_budget: 0.1", &format!("error_budget: 10.0, qat: {{steps: 12, lr: 1.0e-3, batch: 8, frames: 48, threads: {devices}, devices: {devices}}}"));
@@ -426,7 +433,7 @@ fn qat_on_two_gloo_ranks_trains_the_integers_of_one_process() {
 /// The tiny model compiled with `detect-int8` on 32 calibration frames, into `dir/plain`, and
 /// the same with a short QAT (its options followed by `more`) into `dir/qat`; the QAT report.
 fn plain_and_qat(dir: &Path, more: &str) -> (std::path::PathBuf, std::path::PathBuf, serde_json::Value) {
-    let fast = variant(dir, "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 32");
+    let fast = variant(dir, &every_layer(dir), "calib_frames: 64", "calib_frames: 32");
     let plain = variant(dir, &fast, "error_budget: 0.1", "error_budget: 10.0");
     // The steps end it (about 15 s on 2 idle cores); the minutes only cap a loaded machine,
     // where 2 of them once left 11 of its 24 steps.
@@ -474,7 +481,7 @@ fn quantization_aware_recovery_can_distill_from_the_unpruned_model() {
     assert_eq!(r["kept"], true);
     assert!(r["output_rel_l2"]["before"]["detections/classes"].is_f64(), "errors against the unpruned model are reported: {r}");
 
-    let unpruned = variant(dir.path(), "passes/detect-int8.yaml", "error_budget: 0.1", "error_budget: 0.1, qat: {teacher: original}");
+    let unpruned = variant(dir.path(), &every_layer(dir.path()), "error_budget: 0.1", "error_budget: 0.1, qat: {teacher: original}");
     let stderr = refused(TINY, &unpruned, &dir.path().join("refused"), &[]);
     assert!(stderr.contains("quantize: needs teacher from an earlier pass") && stderr.contains("prune"), "{stderr}");
 }
@@ -525,7 +532,7 @@ fn quantization_aware_recovery_can_learn_activation_scales() {
     assert!(shared > 0, "the model has a data-movement op between quantized values");
     scales_are_finite(&b.join("model.onnx"));
 
-    let bad = variant(dir.path(), "passes/detect-int8.yaml", "error_budget: 0.1", "error_budget: 0.1, qat: {class_foreground: -1.0}");
+    let bad = variant(dir.path(), &every_layer(dir.path()), "error_budget: 0.1", "error_budget: 0.1, qat: {class_foreground: -1.0}");
     let stderr = refused(TINY, &bad, &dir.path().join("refused"), &[]);
     assert!(stderr.contains("class_foreground"), "{stderr}");
 }
@@ -562,7 +569,7 @@ fn range_collection_is_the_same_on_any_number_of_workers() {
 #[test]
 fn int8_past_its_hard_limit_fails_and_a_missed_budget_warns() {
     let dir = tempfile::tempdir().unwrap();
-    let fast = variant(dir.path(), "passes/detect-int8.yaml", "calib_frames: 64", "calib_frames: 8, analysis_frames: 2, held_out_frames: 4");
+    let fast = variant(dir.path(), &every_layer(dir.path()), "calib_frames: 64", "calib_frames: 8, analysis_frames: 2, held_out_frames: 4");
     // No INT8 model of this detector is within 1e-4 of float: the limit is past.
     let broken = variant(dir.path(), &fast, "error_budget: 0.1", "hard_limit: {max_rel_l2: 1.0e-4}");
     let out = dir.path().join("broken");
