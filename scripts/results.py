@@ -160,11 +160,15 @@ def int8(ctx):
     return {"models": rows}
 
 
+# How detect-int8 ends: its narrow convolutions float, then written in 3-D. With
+# `narrow_float: 0` instead (and no 3-D pass) every layer is a candidate, the recipe before.
+NARROW_TAIL = "narrow_float: 16}\n  - narrow-convs-nchw\n"
+
 # detect-int8 with one option changed: (name, the text in the recipe, what it becomes).
 INT8_OPTIONS = [
     ("8-bit weights", "weight_bits: 7", "weight_bits: 8"),
     ("error budget 0.01", "error_budget: 0.1", "error_budget: 0.01"),
-    ("narrow float 0, 2-D (the recipe before)", "narrow_float: 16}\n  - narrow-convs-nchw\n", "narrow_float: 0}\n"),
+    ("narrow float 0, 2-D (the recipe before)", NARROW_TAIL, "narrow_float: 0}\n"),
     ("measured bias", "narrow_float: 16}", "narrow_float: 16, measured_bias: true}"),
 ]
 
@@ -199,8 +203,7 @@ def int8_seeds(ctx):
     recipe before), each calibrated on the simulated frames of several seeds, on the trained
     width-0.25 models against labels."""
     text = (ROOT / "passes/detect-int8.yaml").read_text()
-    old = "narrow_float: 16}\n  - narrow-convs-nchw\n"
-    if not text.endswith(old):
+    if not text.endswith(NARROW_TAIL):
         raise Failed("detect-int8 no longer ends with narrow_float: 16 and narrow-convs-nchw")
     forms = {"shipped": lambda s: f"narrow_float: 16, seed: {s}}}\n  - narrow-convs-nchw\n",
              "every layer, 2-D": lambda s: f"narrow_float: 0, seed: {s}}}\n"}
@@ -209,7 +212,7 @@ def int8_seeds(ctx):
         for seed in SEEDS:
             for form, passes in forms.items():
                 recipe = ctx.dir / f"{slug(m)}-{slug(form)}-{seed}.yaml"
-                recipe.write_text(text[:-len(old)] + passes(seed))
+                recipe.write_text(text[:-len(NARROW_TAIL)] + passes(seed))
                 out = ctx.dir / slug(m) / f"{slug(form)}-{seed}"
                 compile_(ctx, MODELS[m], recipe, out)
                 rows.append({"model": m, "form": form, "seed": seed, **verify(ctx, MODELS[m], out / "model.onnx")})

@@ -250,13 +250,8 @@ def latency(f):
     out = table(["variant", "engine", "ms", "against f32", "MACs", "GMAC/s (best layer)", "top operators"], rows)
     o = lambda v: by[(v, "ort")]["ratio"]
     t = lambda v: by[(v, "tract")]["median_ms"] / by[(v, "ort")]["median_ms"]
-    if ("int8-all", "ort") in by:
-        int8 = f"`detect-int8` {o('int8'):.3f}× (goal ≤ 0.8; {o('int8-all'):.3f}× with `narrow_float: 0`)"
-    else:
-        # Records from before detect-int8 kept its narrow layers float.
-        int8 = (f"`detect-int8` {o('int8'):.3f}× (goal ≤ 0.8; with `narrow_float: 16` {o('int8-narrow'):.3f}×"
-                + (f", and with `narrow-convs-nchw` after it {o('int8-narrow-3d'):.3f}×" if ("int8-narrow-3d", "ort") in by else "") + ")")
-    out += ["", f"On ONNX Runtime, against `detect-f32`: {int8}, "
+    out += ["", f"On ONNX Runtime, against `detect-f32`: `detect-int8` {o('int8'):.3f}× (goal ≤ 0.8; "
+                f"{o('int8-all'):.3f}× with `narrow_float: 0`), "
                 f"`detect-pruned-f32` {o('pruned-f32'):.3f}× at {by[('pruned-f32', 'ort')]['macs_ratio']:.3f}× the MACs "
                 f"(goal ≤ 1.5× its MAC ratio), `detect-pruned-int8` {o('pruned-int8'):.3f}× (goal ≤ 0.5; "
                 f"{o('pruned-int8-all'):.3f}× without `narrow_float`)"
@@ -265,7 +260,6 @@ def latency(f):
     if ("pruned-f32-2d", "ort") in by:
         # narrow-convs-nchw's gain, within the same loop: each model against itself in 2-D.
         pairs = [("pruned-f32", "pruned-f32-2d"), ("pruned-int8", "pruned-int8-2d"), ("int8", "int8-2d"), ("f32-3d", "f32")]
-        pairs = [(a, b) for a, b in pairs if (b, "ort") in by]
         out[-1] += (" `narrow-convs-nchw` on ONNX Runtime, each model against its 2-D form: " + ", ".join(
             f"`{a}` {by[(a, 'ort')]['median_ms'] / by[(b, 'ort')]['median_ms']:.3f}× of `{b}`" for a, b in pairs) + ".")
     shipped = [v for v in ("f32", "pruned-f32") if (f"{v}-tract", "tract") in by]
@@ -307,12 +301,8 @@ def latency_256(f):
     return [f"{f['model']}, {f['runs']} interleaved runs on {f['threads']} threads:", ""] + \
         table(["variant", "engine", "ms", "against f32", "top operators"], rows) + \
         ["", f"On ONNX Runtime `detect-int8` runs at {by[('int8', 'ort')]['ratio']:.3f}× of `detect-f32` "
-             f"(goal: no slower, ≤ 1)" + (
-                 f", without its 3-D convolutions at {by[('int8-2d', 'ort')]['ratio']:.3f}×, and with every layer a "
-                 f"candidate (`narrow_float: 0`) at {by[('int8-all', 'ort')]['ratio']:.3f}×" if ("int8-all", "ort") in by else
-                 # Records from before detect-int8 kept its narrow layers float.
-                 f", with `narrow_float: 16` at {by[('int8-narrow', 'ort')]['ratio']:.3f}×"
-                 + (f", and with `narrow-convs-nchw` after it at {by[('int8-narrow-3d', 'ort')]['ratio']:.3f}×" if ("int8-narrow-3d", "ort") in by else "")) + "."]
+             f"(goal: no slower, ≤ 1), without its 3-D convolutions at {by[('int8-2d', 'ort')]['ratio']:.3f}×, and with "
+             f"every layer a candidate (`narrow_float: 0`) at {by[('int8-all', 'ort')]['ratio']:.3f}×."]
 
 
 def latency_640_full(f):
