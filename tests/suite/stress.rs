@@ -16,13 +16,6 @@ fn compile(recipe: &str, out: &Path, extra: &[&str]) {
     assert_eq!(r.code, 0, "{}", r.stderr);
 }
 
-/// detect-int8 with every layer INT8, the stem included (`narrow_float: 0`): the image's range
-/// and the saturation a doubled gain causes show first in the layers nearest the frame, which
-/// the recipe keeps float when they are narrow, as the tiny model's are.
-fn every_layer_int8() -> String {
-    recipe_edit("passes/detect-int8.yaml", "narrow_float: 16}\n  - narrow-convs-nchw\n", "narrow_float: 0}\n")
-}
-
 /// The scale of the image input's quantizer.
 fn image_scale(model: &Path) -> f32 {
     let m = load(model);
@@ -39,6 +32,8 @@ fn image_scale(model: &Path) -> f32 {
 fn robust_calibration_covers_its_conditions() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
+    // Every layer INT8: the image's range and the saturation a doubled gain causes show first
+    // in the layers nearest the frame.
     let text = every_layer_int8().replace("calib_frames: 64", "calib_frames: 16, analysis_frames: 4, held_out_frames: 4");
     let with = |conditions: &str| {
         let p = d.join(format!("r{}.yaml", conditions.len()));

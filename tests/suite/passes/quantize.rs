@@ -21,11 +21,11 @@ fn variant(dir: &Path, recipe: &str, from: &str, to: &str) -> String {
     path.to_str().unwrap().to_string()
 }
 
-/// detect-int8 with every convolution a candidate for INT8 (`narrow_float: 0`, which leaves its
-/// 3-D rewrite nothing to do): these tests are about the quantizer on every layer, and most of
-/// the fixtures' layers are narrower than the 16 channels the recipe keeps float.
+/// [`every_layer_int8`] written into `dir`: these tests are about the quantizer on every layer.
 fn every_layer(dir: &Path) -> String {
-    variant(dir, "passes/detect-int8.yaml", "narrow_float: 16}\n  - narrow-convs-nchw\n", "narrow_float: 0}\n")
+    let path = dir.join("every_layer.yaml");
+    std::fs::write(&path, every_layer_int8()).unwrap();
+    path.to_str().unwrap().to_string()
 }
 
 /// `pdi-compile compile model --pipeline recipe --psf PSF -o out --json extra...`.
