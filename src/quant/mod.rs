@@ -4,6 +4,7 @@
 pub mod at_points;
 pub mod attribution;
 pub mod collect;
+pub mod head_inputs;
 pub mod histogram;
 pub mod narrow;
 pub mod output_bias;

@@ -202,6 +202,42 @@ fn mixed_precision_keeps_the_most_sensitive_layers_float_until_the_budget_holds(
     assert!(q["mixed_precision"]["kept_float"].as_array().unwrap().is_empty());
 }
 
+/// `float_head_inputs` keeps the detector's last convolutions, and what writes the values they
+/// read, float: in the emitted model each of them reads a float value with float weights,
+/// where without the option it reads a DequantizeLinear and int8 weights; the rest of the
+/// network is still quantized.
+#[test]
+fn float_head_inputs_leaves_the_last_convolutions_reading_float() {
+    let dir = tempfile::tempdir().unwrap();
+    // A trained v8: the fixture's random weights break every-layer INT8 past the hard limit.
+    let v8 = "models/trained/pdinet_v8_w0.25_trained.onnx";
+    let plain = every_layer(dir.path());
+    let float = variant(dir.path(), &plain, "calib_frames: 64", "calib_frames: 64, float_head_inputs: true");
+    let (a, b) = (dir.path().join("plain"), dir.path().join("float"));
+    let qa = compile(v8, &plain, &a, &[]);
+    let qb = compile(v8, &float, &b, &[]);
+    assert_eq!(qa["float_head_inputs"].as_array().unwrap().len(), 0, "off unless asked");
+    let listed = qb["float_head_inputs"].as_array().unwrap();
+    let last: Vec<&str> = listed.iter().filter(|e| e["why"].as_str().unwrap().starts_with("a last convolution")).map(|e| e["node"].as_str().unwrap()).collect();
+    assert_eq!(last.len(), 6, "box and class convolutions at three strides: {listed:?}");
+    assert!(listed.len() > last.len(), "and the nodes writing what they read: {listed:?}");
+    let reads = |path: &Path, name: &str| {
+        let g = load(&path.join("model.onnx")).graph.unwrap();
+        let n = g.node.iter().find(|n| n.name == name).unwrap_or_else(|| panic!("{name} in the model")).clone();
+        let producer = |v: &str| g.node.iter().find(|p| p.output.iter().any(|o| o == v)).map(|p| p.op_type.clone());
+        (producer(&n.input[0]), producer(&n.input[1]))
+    };
+    for name in &last {
+        let (x, w) = reads(&a, name);
+        assert_eq!(x.as_deref(), Some("DequantizeLinear"), "{name} reads a quantized value without the option");
+        assert_eq!(w.as_deref(), Some("DequantizeLinear"), "{name}'s weights are int8 without it");
+        let (x, w) = reads(&b, name);
+        assert!(x.as_deref().is_some_and(|op| op != "DequantizeLinear"), "{name} reads {x:?} with the option");
+        assert_eq!(w, None, "{name}'s weights are a float initializer");
+    }
+    assert!(qb["layers_quantized"].as_u64().unwrap() + 12 >= qa["layers_quantized"].as_u64().unwrap(), "the rest stays quantized: {} against {}", qb["layers_quantized"], qa["layers_quantized"]);
+}
+
 /// `measured_bias` corrects every quantized convolution level by level, so that on the frames
 /// it measured, as ONNX Runtime runs the model, each one's per-channel output mean is float's
 /// up to its int32 bias's rounding (correcting them all from one measurement leaves large
