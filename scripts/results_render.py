@@ -73,6 +73,14 @@ def int8_options(f):
         table(["model", "detect-int8", "mAP original", "mAP INT8", "change", "agreement", "worst rel L2", "layers kept float"], rows)
 
 
+def int8_regions(f):
+    rows = [[r["model"], r["form"], str(r["nodes_float"]), f4(r["map_reference"]), f4(r["map"]),
+             f"{r['map'] - r['map_reference']:+.4f}", f4(r["agreement"]), f"{r['rel_l2']:.3f}"] for r in f["rows"]]
+    return ["`detect-int8` with one region of the network kept float (`keep_float`: every node of it), on the 200 "
+            "held-out frames, calibration seed 0:", ""] + \
+        table(["model", "detect-int8", "nodes kept float", "mAP original", "mAP INT8", "change", "agreement", "worst rel L2"], rows)
+
+
 def int8_seeds(f):
     rows = []
     for m in dict.fromkeys(r["model"] for r in f["rows"]):
@@ -207,6 +215,17 @@ def direction(f):
         table(["recipe", "pruned f32", "pruned INT8"], rows) + ([""] + [gain.strip()] if gain else [])
 
 
+def elsewhere(f):
+    rc = f["recover"]
+    return [f"The shipped pruned recipes on the {f['model']}, given only unlabelled frames: {f['calibration']} "
+            f"({f['calib_frames']} in the folder, {f['frames']} of them held in training; no labels read). Recovery: "
+            f"{rc['steps']} steps on {rc['crop'] or 'whole frames'} in {dur(rc['seconds'])} "
+            f"({rc['frames_per_second']:.1f} frames/s); mAP@0.5:0.95 on the labelled held-out scenes at 640×480:", ""] + \
+        table(["model", "MACs", "mAP original", "pruned f32", "pruned INT8"],
+              [[f["model"], f"{f['macs_ratio']:.2f}×", f4(f["map_original"]), f"{f4(f['map_f32'])} ({f['kept_f32']:.3f}×)",
+                f"{f4(f['map_int8'])} ({f['kept_int8']:.3f}×)"]])
+
+
 def camera(f):
     rows = []
     for m in f["models"]:
@@ -250,11 +269,12 @@ def latency(f):
     out = table(["variant", "engine", "ms", "against f32", "MACs", "GMAC/s (best layer)", "top operators"], rows)
     o = lambda v: by[(v, "ort")]["ratio"]
     t = lambda v: by[(v, "tract")]["median_ms"] / by[(v, "ort")]["median_ms"]
+    head = lambda v: f", {o(v + '-head'):.3f}× with the last convolutions' inputs quantized" if (v + "-head", "ort") in by else ""
     out += ["", f"On ONNX Runtime, against `detect-f32`: `detect-int8` {o('int8'):.3f}× (goal ≤ 0.8; "
-                f"{o('int8-all'):.3f}× with `narrow_float: 0`), "
+                f"{o('int8-all'):.3f}× with `narrow_float: 0`{head('int8')}), "
                 f"`detect-pruned-f32` {o('pruned-f32'):.3f}× at {by[('pruned-f32', 'ort')]['macs_ratio']:.3f}× the MACs "
                 f"(goal ≤ 1.5× its MAC ratio), `detect-pruned-int8` {o('pruned-int8'):.3f}× (goal ≤ 0.5; "
-                f"{o('pruned-int8-all'):.3f}× without `narrow_float`)"
+                f"{o('pruned-int8-all'):.3f}× without `narrow_float`{head('pruned-int8')})"
                 + ". tract against ONNX Runtime: "
                 + ", ".join(f"`{v}` {t(v):.2f}×" for v in ("f32", "pruned-f32", "int8", "pruned-int8")) + "."]
     if ("pruned-f32-2d", "ort") in by:
@@ -301,8 +321,10 @@ def latency_256(f):
     return [f"{f['model']}, {f['runs']} interleaved runs on {f['threads']} threads:", ""] + \
         table(["variant", "engine", "ms", "against f32", "top operators"], rows) + \
         ["", f"On ONNX Runtime `detect-int8` runs at {by[('int8', 'ort')]['ratio']:.3f}× of `detect-f32` "
-             f"(goal: no slower, ≤ 1), without its 3-D convolutions at {by[('int8-2d', 'ort')]['ratio']:.3f}×, and with "
-             f"every layer a candidate (`narrow_float: 0`) at {by[('int8-all', 'ort')]['ratio']:.3f}×."]
+             f"(goal: no slower, ≤ 1), without its 3-D convolutions at {by[('int8-2d', 'ort')]['ratio']:.3f}×, "
+             f"with `narrow_float: 0` at {by[('int8-all', 'ort')]['ratio']:.3f}×"
+             + (f", and with its last convolutions' inputs quantized (the recipe before) at {by[('int8-head', 'ort')]['ratio']:.3f}×"
+                if ("int8-head", "ort") in by else "") + "."]
 
 
 def latency_640_full(f):
@@ -331,7 +353,8 @@ def tract_kernels(f):
 
 
 BLOCKS = {"lossless": lossless, "latency-640": latency, "latency-640-full": latency_640_full, "tract-kernels": tract_kernels, "latency-256": latency_256, "camera-640": camera, "pruned-640": pruned_640,
-          "ship-640-v5": ship_640, "ship-640-v8": ship_640, "int8": int8, "int8-options": int8_options, "int8-seeds": int8_seeds, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
+          "elsewhere-v5": elsewhere, "elsewhere-v8": elsewhere,
+          "ship-640-v5": ship_640, "ship-640-v8": ship_640, "int8": int8, "int8-options": int8_options, "int8-seeds": int8_seeds, "int8-regions": int8_regions, "demo": demo, "run": run, "rknn": rknn, "scene": scene,
           "rebuild": rebuild, "recipe-bytes": recipe_bytes,
           "broken-builds": broken_builds, "suite": suite}
 

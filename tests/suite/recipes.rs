@@ -42,7 +42,7 @@ const FLAT: &[(&str, &[&str])] = &[
         "resize-to-deconv",
         "dce",
         "cleanup",
-        "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1, narrow_float: 16}",
+        "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1, float_head_inputs: true, narrow_float: 16}",
         "narrow-convs-nchw",
     ]),
     ("detect-int8-learned", &[
@@ -150,7 +150,7 @@ const FLAT: &[(&str, &[&str])] = &[
         "recover: {steps: 8000, lr: 3.0e-3, batch: 8, frames: 2048}",
         "cleanup",
         "narrow-convs-nchw",
-        "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1, narrow_float: 16}",
+        "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1, float_head_inputs: true, narrow_float: 16}",
         "narrow-convs-nchw",
     ]),
     ("detect-pruned-int8-norecover", &[
@@ -165,7 +165,7 @@ const FLAT: &[(&str, &[&str])] = &[
         "prune: {ratio: 0.5, importance: l1, round_to: 8, compensate: lstsq, ridge: 0.05}",
         "cleanup",
         "narrow-convs-nchw",
-        "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1, narrow_float: 16}",
+        "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1, float_head_inputs: true, narrow_float: 16}",
         "narrow-convs-nchw",
     ]),
     ("detect-pruned-int8-qat", &[

@@ -120,10 +120,11 @@ pub fn recipe_edit(recipe: &str, from: &str, to: &str) -> String {
     text.replace(from, to)
 }
 
-/// detect-int8 with every convolution a candidate for INT8, the stem included
-/// (`narrow_float: 0`, and no 3-D rewrite after it): for tests of the quantizer on every
-/// layer, since the recipe keeps layers narrower than 16 channels float and most of the
-/// fixtures' and the tiny model's layers are that narrow.
+/// detect-int8 with every convolution a candidate for INT8, the stem and the detector's last
+/// convolutions' inputs included (`narrow_float: 0`, no `float_head_inputs`, and no 3-D
+/// rewrite after it): for tests of the quantizer on every layer, since the recipe keeps
+/// layers narrower than 16 channels float and most of the fixtures' and the tiny model's
+/// layers are that narrow.
 pub fn every_layer_int8() -> String {
-    recipe_edit("passes/detect-int8.yaml", "narrow_float: 16}\n  - narrow-convs-nchw\n", "narrow_float: 0}\n")
+    recipe_edit("passes/detect-int8.yaml", "float_head_inputs: true, narrow_float: 16}\n  - narrow-convs-nchw\n", "narrow_float: 0}\n")
 }
