@@ -206,6 +206,9 @@ REGIONS = {
     "backbone, strides 4-8": ("/backbone/p2", "/backbone/p3", "/backbone/down3"),
     "backbone, strides 16-32": ("/backbone/p4", "/backbone/p5", "/backbone/down4", "/backbone/down5", "/backbone/sppf"),
     "neck": ("/neck",), "head": ("/detect",), "head, stride-8 box branch": ("/detect/cv2.0",),
+    "stride-8 box branch's 3x3 convolutions, not the SiLU after the second":
+        ("/detect/cv2.0/cv2.0.0", "/detect/cv2.0/cv2.0.1/conv"),
+    "stride-8 box branch's last SiLU and last convolution": ("/detect/cv2.0/cv2.0.1/act", "/detect/cv2.0/cv2.0.2"),
 }
 
 
