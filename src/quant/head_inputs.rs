@@ -7,8 +7,9 @@
 //! held-out frames, `detect-int8`, calibration seed 0): INT8 agreed with float's detections
 //! at 0.966 (mAP@0.5:0.95) and lost 0.0167 of mAP against labels; with the stride-8 box
 //! convolution and the SiLU before it float, 0.990 and 0.008; any other region of the network
-//! float (encoder, bridge, backbone, neck) left it within 0.003 of where it was. The last
-//! convolutions are 1x1 over the head's maps: about 1% of the detector's MACs.
+//! float (encoder, bridge, backbone, neck) left it within 0.003 of where it was (record
+//! `int8-regions`). The last convolutions are 1x1 over the head's maps: about 1% of the
+//! detector's MACs.
 //!
 //! The value a last convolution reads is float when its producer and the convolution are:
 //! the producer's other readers, if any, quantize it at their own inputs.
