@@ -250,17 +250,17 @@ def int8_seeds(ctx):
     with those last convolutions' inputs quantized (the recipe before), each calibrated on the
     simulated frames of several seeds, on the trained width-0.25 models against labels."""
     text = (ROOT / "passes/detect-int8.yaml").read_text()
-    if not text.endswith(HEAD_INPUTS + NARROW_TAIL):
-        raise Failed("detect-int8 no longer ends with float_head_inputs, narrow_float: 16 and narrow-convs-nchw")
     tail = HEAD_INPUTS + NARROW_TAIL
-    forms = {"shipped": lambda s: f"{HEAD_INPUTS}narrow_float: 16, seed: {s}}}\n  - narrow-convs-nchw\n",
-             "head inputs quantized": lambda s: f"narrow_float: 16, seed: {s}}}\n  - narrow-convs-nchw\n"}
+    if not text.endswith(tail):
+        raise Failed("detect-int8 no longer ends with float_head_inputs, narrow_float: 16 and narrow-convs-nchw")
+    # Each form: what comes before narrow_float in the recipe's tail.
+    forms = {"shipped": HEAD_INPUTS, "head inputs quantized": ""}
     rows = []
     for m in ("v5 w0.25", "v8 w0.25"):
         for seed in SEEDS:
-            for form, passes in forms.items():
+            for form, head in forms.items():
                 recipe = ctx.dir / f"{slug(m)}-{slug(form)}-{seed}.yaml"
-                recipe.write_text(text[:-len(tail)] + passes(seed))
+                recipe.write_text(text[:-len(tail)] + f"{head}narrow_float: 16, seed: {seed}}}\n  - narrow-convs-nchw\n")
                 out = ctx.dir / slug(m) / f"{slug(form)}-{seed}"
                 compile_(ctx, MODELS[m], recipe, out)
                 rows.append({"model": m, "form": form, "seed": seed, **verify(ctx, MODELS[m], out / "model.onnx")})
@@ -601,9 +601,14 @@ def eval_640(ctx, seed):
     """scripts/eval-set's held-out scenes (seed 2), or another seed's, kept at 640x480."""
     folder = ctx.dir / f"eval-640-seed{seed}"
     if not folder.exists():
-        ctx.run([BIN, "dataset", folder, "--psf", psf_640(ctx), "--n", 200, "--q", 90, "--seed", seed, "--min-box", 16,
-                 "--out-size", "640x480"])
+        scenes_640(ctx, folder, seed, 200)
     return folder / "degraded"
+
+
+def scenes_640(ctx, folder, seed, n):
+    """`n` labelled scenes of `seed` at 640x480 in `folder`, as scripts/eval-set makes them."""
+    ctx.run([BIN, "dataset", folder, "--psf", psf_640(ctx), "--n", n, "--q", 90, "--seed", seed, "--min-box", 16,
+             "--out-size", "640x480"])
 
 
 def psf_640(ctx):
@@ -719,8 +724,7 @@ def unlabelled(ctx, seed, n):
     """`n` frames of another seed's scenes at 640x480, the images alone."""
     folder = ctx.dir / f"unlabelled-seed{seed}"
     if not folder.exists():
-        ctx.run([BIN, "dataset", ctx.dir / f"scenes-seed{seed}", "--psf", psf_640(ctx), "--n", n, "--q", 90, "--seed", seed,
-                 "--min-box", 16, "--out-size", "640x480"])
+        scenes_640(ctx, ctx.dir / f"scenes-seed{seed}", seed, n)
         folder.mkdir()
         for png in sorted((ctx.dir / f"scenes-seed{seed}/degraded").glob("*.png")):
             png.rename(folder / png.name)
