@@ -25,6 +25,17 @@ fn kept(v: &Variant, original: &Variant) -> Option<(f64, &'static str)> {
     }
 }
 
+/// A kept share as the screen shows it: two decimals, or three where two would print the bar
+/// itself for a share on either side of it (0.896 is not "0.90x" beside "at least 0.90x").
+fn share(k: f64, bar: f64) -> String {
+    let two = format!("{k:.2}");
+    if two == format!("{bar:.2}") && k != bar {
+        format!("{k:.3}x")
+    } else {
+        format!("{two}x")
+    }
+}
+
 pub fn recommend(variants: &[Variant], min_kept: f64, rknn: &Path, rknn_failed: bool) -> Vec<Recommendation> {
     let mut out = Vec::new();
     let Some(original) = variants.first() else { return out };
@@ -35,9 +46,9 @@ pub fn recommend(variants: &[Variant], min_kept: f64, rknn: &Path, rknn_failed: 
         let fastest = candidates.iter().min_by(|a, b| a.1.total_cmp(&b.1));
         let r = match (good, fastest) {
             (Some(&(v, t, k, what)), Some(&(f, ft, fk, fwhat))) => {
-                let mut why = format!("{t:.2} ms on {engine}, keeps {k:.2}x of the original's {what}: the fastest of those keeping at least {min_kept:.2}x");
+                let mut why = format!("{t:.2} ms on {engine}, keeps {} of the original's {what}: the fastest of those keeping at least {min_kept:.2}x", share(k, min_kept));
                 if f.name != v.name {
-                    why.push_str(&format!(" ({} runs in {ft:.2} ms but keeps {fk:.2}x of the {fwhat})", f.name));
+                    why.push_str(&format!(" ({} runs in {ft:.2} ms but keeps {} of the {fwhat})", f.name, share(fk, min_kept)));
                 }
                 if let Some(slower) = candidates.iter().filter(|c| c.0.name != v.name && c.1 > t && c.2 <= k).map(|c| c.0.name.as_str()).next() {
                     why.push_str(&format!("; {slower} is slower and no more accurate"));
@@ -47,7 +58,7 @@ pub fn recommend(variants: &[Variant], min_kept: f64, rknn: &Path, rknn_failed: 
             (None, Some(&(f, ft, fk, fwhat))) => Recommendation {
                 target: target.into(),
                 variant: None,
-                why: format!("no artifact keeps {min_kept:.2}x of the original's {fwhat} (the fastest, {}, runs in {ft:.2} ms and keeps {fk:.2}x): recover longer (--recover-steps) or deploy the original", f.name),
+                why: format!("no artifact keeps {min_kept:.2}x of the original's {fwhat} (the fastest, {}, runs in {ft:.2} ms and keeps {}): recover longer (--recover-steps) or deploy the original", f.name, share(fk, min_kept)),
             },
             _ => Recommendation { target: target.into(), variant: None, why: format!("nothing was measured on {engine}") },
         };
@@ -92,5 +103,11 @@ mod tests {
         assert_eq!(r[2].variant, None);
         let r = recommend(&vs[..1], 0.9, Path::new("out/rknn"), false);
         assert_eq!(r[0].variant, None);
+        // A share that two decimals would print as the bar gets a third.
+        let vs = [v("original", 11.44, 20.0, 0.4534), v("f32", 11.69, 16.34, 0.4534), v("pruned-f32", 4.29, 8.20, 0.4062)];
+        let r = recommend(&vs, 0.9, Path::new("out/rknn"), false);
+        assert_eq!(r[0].variant.as_deref(), Some("f32"));
+        assert!(r[0].why.contains("pruned-f32 runs in 4.29 ms but keeps 0.896x of the mAP"), "{}", r[0].why);
+        assert_eq!((share(0.9, 0.9), share(0.904, 0.9), share(0.95, 0.9)), ("0.90x".into(), "0.904x".into(), "0.95x".into()));
     }
 }
