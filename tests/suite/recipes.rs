@@ -42,7 +42,7 @@ const FLAT: &[(&str, &[&str])] = &[
         "resize-to-deconv",
         "dce",
         "cleanup",
-        "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1, float_head_inputs: true, narrow_float: 16}",
+        "quantize: {method: mse, activations: u8, weight_bits: 7, calib_frames: 64, bias_correction: true, error_budget: 0.1, measured_bias: true, float_head_inputs: true, narrow_float: 16}",
         "narrow-convs-nchw",
     ]),
     ("detect-int8-learned", &[
