@@ -123,9 +123,8 @@ pub fn recipe_edit(recipe: &str, from: &str, to: &str) -> String {
 /// detect-int8 with every convolution a candidate for INT8, the stem and the detector's last
 /// convolutions' inputs included (`narrow_float: 0`, no `float_head_inputs`, and no 3-D
 /// rewrite after it), without `measured_bias` (its own test turns it on): for tests of the
-/// quantizer on every layer, since the recipe keeps
-/// layers narrower than 16 channels float and most of the fixtures' and the tiny model's
-/// layers are that narrow.
+/// quantizer on every layer, since the recipe keeps layers narrower than 16 channels float
+/// and most of the fixtures' and the tiny model's layers are that narrow.
 pub fn every_layer_int8() -> String {
     recipe_edit("passes/detect-int8.yaml", "measured_bias: true, float_head_inputs: true, narrow_float: 16}\n  - narrow-convs-nchw\n", "narrow_float: 0}\n")
 }
