@@ -85,7 +85,7 @@ pub struct VerifyReport {
     pub candidate: String,
     pub frames: usize,
     pub frame_source: String,
-    /// The candidate is the reference's file: its outputs were the reference's, run once.
+    /// The candidate is the reference's model: its outputs were the reference's, run once.
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub candidate_is_reference: bool,
     pub outputs: Vec<OutputReport>,
@@ -161,8 +161,9 @@ pub fn verify(req: &VerifyRequest) -> Result<VerifyReport> {
     let mut ref_rt = runtime::load(Engine::Ort, &reference.model, &first_ref, req.threads)?;
     // A model verified against itself (a card's mAP against labels) runs once per frame on
     // ONNX Runtime: the candidate's outputs are the reference's, which the same session on
-    // the same feeds would give again. Timed runs still time both sessions.
-    let same = scene.is_none() && std::fs::read(&req.reference)? == std::fs::read(&req.candidate)?;
+    // the same feeds would give again. Timed runs still time both sessions. The models are
+    // compared as loaded above, not read again.
+    let same = scene.is_none() && reference.model == candidate.model;
     let mut cand_rt = if same && req.latency_runs == 0 { None } else { Some(runtime::load(Engine::Ort, &candidate.model, &first_cand, req.threads)?) };
     let mut tract_rt = if req.tract { Some(runtime::load(Engine::Tract, &candidate.model, &first_cand, req.threads)?) } else { None };
 
