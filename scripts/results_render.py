@@ -324,7 +324,9 @@ def latency_256(f):
              f"(goal: no slower, ≤ 1), without its 3-D convolutions at {by[('int8-2d', 'ort')]['ratio']:.3f}×, "
              f"with `narrow_float: 0` at {by[('int8-all', 'ort')]['ratio']:.3f}×"
              + (f", and with its last convolutions' inputs quantized (the recipe before) at {by[('int8-head', 'ort')]['ratio']:.3f}×"
-                if ("int8-head", "ort") in by else "") + "."]
+                if ("int8-head", "ort") in by else "")
+             + (f"; with each SiLU float between the integer convolutions at {by[('int8-silu', 'ort')]['ratio']:.3f}×"
+                if ("int8-silu", "ort") in by else "") + "."]
 
 
 def latency_640_full(f):
