@@ -425,6 +425,14 @@ def readme_rows(recs):
             f"{f['macs_ratio']:.0%} of the MACs; keeps {f['kept_f32']:.3f}× ({f['map_f32']:.3f} of {f['map_original']:.3f}); "
             f"compile {dur(f['compile_seconds'])}" + ("" if not f["at_256"] else f" ({f['compile_seconds'] / f['at_256']['compile_seconds']:.2f}× the 256×192 model's)"),
             "pruned-640", "camera.md")
+    away = [recs[n] for n in ("elsewhere-v5", "elsewhere-v8") if n in recs]
+    if away:
+        fs = [r["figures"] for r in away]
+        row(f"`detect-pruned-f32` / `-int8` on models trained elsewhere (the 640×480 models, given "
+            f"{fs[0]['calib_frames']} unlabelled frames of other scenes)",
+            "keeps " + "; ".join(f"{f['kept_f32']:.3f}× / {f['kept_int8']:.3f}× ({f['model'].split(' at ')[0]}, "
+                                 f"{f['macs_ratio']:.2f}× the MACs)" for f in fs),
+            away[0]["name"], "pruning.md")
     for name in ("ship-640-v5", "ship-640-v8"):
         if name in recs:
             f = recs[name]["figures"]
