@@ -923,7 +923,7 @@ def latency_256(ctx):
 def float_silu(ctx, model):
     """`detect-int8`'s own passes with every SiLU of `model` (a Mul of x and Sigmoid(x)) kept
     float, between the integer convolutions: ONNX Runtime runs an integer SiLU as QLinearSigmoid
-    and QLinearMul, a float one as a DequantizeLinear before and a QuantizeLinear after."""
+    and QLinearMul, a float one as DequantizeLinear, Sigmoid, Mul and QuantizeLinear."""
     import onnx
     g = onnx.load(str(model)).graph
     producer = {o: n for n in g.node for o in n.output}
