@@ -1078,6 +1078,31 @@ def repeat(before, record):
             "differ": [{"figure": k, "before": old[k], "now": new[k]} for k in shared if old[k] != new[k]]}
 
 
+def ort_ratios(figures):
+    """Each variant's latency against `detect-f32` on ONNX Runtime, from a latency record."""
+    return {r["variant"]: round(r["ratio"], 3) for r in figures.get("rows", []) if r.get("engine") == "ort"}
+
+
+# Records whose figures move with the host from loop to loop: each keeps what every earlier
+# committed version of itself measured (name -> the figures kept), so that a goal line is read
+# off every loop, not the last one alone.
+HISTORY = {"latency-640": ort_ratios, "latency-256": ort_ratios}
+
+
+def history(name, started):
+    """The committed versions of record `name` but the run that started at `started`, oldest
+    first: when, where, at which commit, and the figures `HISTORY` keeps of them."""
+    path = f"{RECORDS / name}.json"
+    seen, out = {started}, []
+    for c in reversed(git("log", "--format=%H", "--", path).split()):
+        r = json.loads(git("show", f"{c}:{path}"))
+        if r["started"] in seen:
+            continue  # a commit that changed the record's file without a new run
+        seen.add(r["started"])
+        out.append({"commit": r["commit"], "date": r["date"], "machine": r["machine"], "figures": HISTORY[name](r["figures"])})
+    return out
+
+
 def git(*args):
     return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
 
@@ -1136,6 +1161,8 @@ def measure(names, tier):
         if env:
             record["environment"] = env
         record["repeat"] = repeat(previous(name), record)
+        if name in HISTORY:
+            record["history"] = history(name, record["started"])
         (ROOT / RECORDS / f"{name}.json").write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
         print(f"results: {name}: recorded in {record['seconds']:.0f} s", file=sys.stderr, flush=True)
     return failed
@@ -1150,11 +1177,18 @@ def main():
     tier.add_argument("--full", action="store_const", dest="tier", const="full")
     r.add_argument("--only", nargs="+")
     sub.add_parser("render")
+    sub.add_parser("history", help="refresh the history of the records that keep one from the committed versions")
     sub.add_parser("check").add_argument("root", nargs="?", type=Path, default=ROOT,
                                          help="a copy of the repository's pages and records")
     a = ap.parse_args()
     os.chdir(ROOT)
     failed = measure(a.only, a.tier or "quick") if a.what == "run" else []
+    if a.what == "history":
+        for name in HISTORY:
+            path = ROOT / RECORDS / f"{name}.json"
+            record = json.loads(path.read_text())
+            record["history"] = history(name, record["started"])
+            path.write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
     sys.path.insert(0, str(ROOT / "scripts"))
     import results_render
     if a.what == "check":

@@ -361,6 +361,26 @@ BLOCKS = {"lossless": lossless, "latency-640": latency, "latency-640-full": late
           "broken-builds": broken_builds, "suite": suite}
 
 
+# The ratios a latency record's history table shows, in this order, where a loop measured them.
+HISTORY_COLUMNS = {
+    "latency-640": ["int8", "int8-head", "pruned-f32", "pruned-int8", "pruned-f32-round16", "pruned-f32-round8",
+                    "pruned-f32-latency"],
+    "latency-256": ["int8", "int8-2d", "int8-head", "int8-silu"],
+}
+
+
+def history(r):
+    """Every loop the record has run in, this one last: the recipes as they were at each commit."""
+    runs = r["history"] + [{"commit": r["commit"], "date": r["date"], "machine": r["machine"],
+                            "figures": {x["variant"]: x["ratio"] for x in r["figures"]["rows"] if x["engine"] == "ort"}}]
+    cols = [c for c in HISTORY_COLUMNS[r["name"]] if any(c in h["figures"] for h in runs)]
+    return [f"Every run of this record, against `detect-f32` on ONNX Runtime (the recipes as they were at each "
+            f"commit; the CPU's drift moves a ratio by up to a third from run to run):", ""] + \
+        table(["date", "commit", "CPU"] + [f"`{c}`" for c in cols],
+              [[h["date"], h["commit"][:7], h["machine"]["cpu"] + (" (AVX-512)" if h["machine"].get("avx512") else "")]
+               + [f"{h['figures'][c]:.3f}×" if c in h["figures"] else "-" for c in cols] for h in runs])
+
+
 def block(r):
     fn = BLOCKS.get(r["name"]) or (pruned if r["name"].startswith("pruned-") else averaged if r["name"].startswith("ema-")
                                    else direction if "direction" in r["figures"] else None)
@@ -376,7 +396,10 @@ def block(r):
                   ("." if not rep["differ"] else "; differ: " + ", ".join(
                       f"`{d['figure']}` {d['before']} → {d['now']}" for d in rep["differ"][:8]) +
                    (f" and {len(rep['differ']) - 8} more" if len(rep["differ"]) > 8 else "") + "."), ""]
-    lines += fn(r["figures"]) + ["", "Commands (from the repository root; seconds):", ""]
+    lines += fn(r["figures"])
+    if r.get("history"):
+        lines += [""] + history(r)
+    lines += ["", "Commands (from the repository root; seconds):", ""]
     lines += [f"- `{c['command']}` ({c['seconds']:.0f} s)" for c in r["commands"]]
     return lines
 
