@@ -25,6 +25,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "scripts"))
+import results_render  # noqa: E402  (beside this file)
+
 RECORDS = Path("docs/results/records")
 BIN = "target/release/pdi-compile"
 WORK = Path("target/results")
@@ -1137,6 +1140,7 @@ def measure(names, tier):
         link.symlink_to(Path(frames).parent)
     (ROOT / RECORDS).mkdir(parents=True, exist_ok=True)
     failed = []
+    recipes = results_render.digests(results_render.shipped(ROOT))
     # Whether what is measured is the commit: the product's files, not the records, as they
     # were when scripts/results built the binary (it judges them before the build).
     commit = os.environ.get("PDI_RESULTS_COMMIT") or git("rev-parse", "HEAD")
@@ -1156,7 +1160,7 @@ def measure(names, tier):
             "name": name, "tier": tier_, "page": page, "commit": commit, "commit_has_changes": bool(changed),
             "date": started.strftime("%Y-%m-%d"), "started": started.strftime("%Y-%m-%dT%H:%M:%SZ"),
             "machine": machine(gpu if env is None else None), "seconds": round(time.monotonic() - t, 1),
-            "commands": ctx.commands, "figures": figures,
+            "commands": ctx.commands, "figures": figures, "recipes": recipes,
         }
         if env:
             record["environment"] = env
@@ -1177,20 +1181,28 @@ def main():
     tier.add_argument("--full", action="store_const", dest="tier", const="full")
     r.add_argument("--only", nargs="+")
     sub.add_parser("render")
+    sub.add_parser("recipes", help="give records made without their recipes' digests those of their commit")
     sub.add_parser("history", help="refresh the history of the records that keep one from the committed versions")
     sub.add_parser("check").add_argument("root", nargs="?", type=Path, default=ROOT,
                                          help="a copy of the repository's pages and records")
     a = ap.parse_args()
     os.chdir(ROOT)
     failed = measure(a.only, a.tier or "quick") if a.what == "run" else []
+    if a.what == "recipes":
+        # Records made before records kept their recipes' digests: the recipes at their commit.
+        for path in sorted((ROOT / RECORDS).glob("*.json")):
+            record = json.loads(path.read_text())
+            if "recipes" not in record:
+                names = git("ls-tree", "--name-only", record["commit"], "passes/").split()
+                record["recipes"] = results_render.digests(
+                    {Path(n).stem: git("show", f"{record['commit']}:{n}") + "\n" for n in names if n.endswith(".yaml")})
+                path.write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
     if a.what == "history":
         for name in HISTORY:
             path = ROOT / RECORDS / f"{name}.json"
             record = json.loads(path.read_text())
             record["history"] = history(name, record["started"])
             path.write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
-    sys.path.insert(0, str(ROOT / "scripts"))
-    import results_render
     if a.what == "check":
         sys.exit(results_render.check(a.root))
     results_render.write(ROOT)

@@ -5,6 +5,7 @@ A page holds a record's block between `<!-- record NAME -->` and `<!-- /record N
 (added at the page's end the first time); the README holds `<!-- results table -->` and
 `<!-- demo screen -->` blocks the same way.
 """
+import hashlib
 import json
 import re
 import sys
@@ -49,6 +50,60 @@ def table(head, rows):
     out = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
     return out
+
+
+# --- which recipes a record ran, and whether they still ship --------------------------------
+
+def computes(text):
+    """What a recipe computes: its base, what it leaves out of the base and its passes; not
+    its name or description, whose wording changes no byte."""
+    head = [l for l in text.splitlines() if l.startswith(("base:", "without:"))]
+    return "\n".join(head) + (text[text.index("\npasses:"):] if "\npasses:" in text else text)
+
+
+def digests(texts):
+    """Recipe name -> digest of what it computes, for recipe texts by name."""
+    return {n: hashlib.sha256(computes(x).encode()).hexdigest()[:16] for n, x in sorted(texts.items())
+            if x.startswith("name:")}
+
+
+def shipped(root):
+    """The recipes in the checkout at `root`, by name: their texts."""
+    return {p.stem: p.read_text() for p in sorted((root / "passes").glob("*.yaml"))}
+
+
+# Recipes a command runs without naming a file: `ship` compiles its variants from these (the
+# last one's own passes only, on the pruned variant).
+IMPLIED = {"pdi-compile ship": (["detect-f32", "detect-pruned-rknn"], ["detect-pruned-int8"]),
+           "scripts/demo": (["detect-f32", "detect-pruned-rknn"], ["detect-pruned-int8"])}
+
+
+def used(r, texts):
+    """The recipes record `r` compiled with: whole (with their bases) or their own passes alone."""
+    whole, own = set(), set()
+    for c in r["commands"]:
+        cmd = c["command"]
+        whole |= set(re.findall(r"(?:passes|recipes)/([a-z0-9-]+)\.yaml", cmd))
+        own |= set(re.findall(r"/([a-z0-9-]+?)-own[.-]", cmd))
+        for k, (w, o) in IMPLIED.items():
+            if k in cmd:
+                whole |= set(w)
+                own |= set(o)
+    if "direction" in r["figures"]:
+        whole.add("detect-pruned-f32")  # each direction is that recipe with one change
+    todo, out = sorted(whole & texts.keys()), own & texts.keys()
+    while todo:
+        n = todo.pop()
+        out.add(n)
+        todo += [b for b in re.findall(r"^base: ([a-z0-9-]+)$", texts[n], re.M) if b in texts and b not in out]
+    return sorted(out)
+
+
+def changed_since(r, texts, now):
+    """The recipes `r` ran that compute something else now (records without their recipes'
+    digests: none known)."""
+    then = r.get("recipes")
+    return [] if then is None else [n for n in used(r, texts) if then.get(n) != now.get(n)]
 
 
 # --- one block per record --------------------------------------------------------------------
@@ -381,13 +436,16 @@ def history(r):
                + [f"{h['figures'][c]:.3f}×" if c in h["figures"] else "-" for c in cols] for h in runs])
 
 
-def block(r):
+def block(r, stale=()):
     fn = BLOCKS.get(r["name"]) or (pruned if r["name"].startswith("pruned-") else averaged if r["name"].startswith("ema-")
                                    else direction if "direction" in r["figures"] else None)
     commit = r["commit"][:10] + (" (with uncommitted changes to the product)" if r["commit_has_changes"] else "")
     load = r["machine"].get("load_before")
     lines = [f"**Record `{r['name']}`** ({r['tier']} tier of `scripts/results`): {r['date']}, {machine(r['machine'])}"
              f"{f', load {load} at the start' if load is not None else ''}; commit {commit}; {dur(r['seconds'])}.", ""]
+    if stale:
+        lines += [f"Recipes changed since this run (their passes or options, at commit {r['commit'][:10]} against "
+                  f"the checkout): {', '.join(f'`{n}`' for n in stale)}. Its figures are those recipes' as they were.", ""]
     rep = r.get("repeat")
     if rep:
         same = rep["compared"] - len(rep["differ"])
@@ -517,7 +575,7 @@ def readme_rows(recs):
     return rows
 
 
-def readme_table(recs):
+def readme_table(recs, texts, now):
     if not recs:
         return ["No records yet: `scripts/results` makes them."]
     machines = Counter(machine(r["machine"]) for r in recs.values())
@@ -530,7 +588,9 @@ def readme_table(recs):
     for task, result, name, page in readme_rows(recs):
         r = recs[name]
         where = "" if machine(r["machine"]) == common else f"; {machine(r['machine'])}"
-        rows.append([task, result, f"[{r['date']}{where}](docs/results/{page})"])
+        stale = changed_since(r, texts, now)
+        since = f" (recipe changed since: {', '.join(f'`{n}`' for n in stale)})" if stale else ""
+        rows.append([task, result, f"[{r['date']}{where}](docs/results/{page}){since}"])
     return lines + table(["task", "result", "record"], rows)
 
 
@@ -557,15 +617,17 @@ def splice(text, tag, body, name=None):
 
 def rendered(root):
     recs = load(root)
+    texts = shipped(root)
+    now = digests(texts)
     pages = {}
     readme = (root / "README.md").read_text()
-    readme = splice(readme, "results table", readme_table(recs))
+    readme = splice(readme, "results table", readme_table(recs, texts, now))
     readme = splice(readme, "demo screen", demo_screen(recs))
     pages["README.md"] = readme
     for r in recs.values():
         path = f"docs/results/{r['page']}"
         text = pages.get(path) or (root / path).read_text()
-        pages[path] = splice(text, f"record {r['name']}", block(r))
+        pages[path] = splice(text, f"record {r['name']}", block(r, changed_since(r, texts, now)))
     return pages
 
 

@@ -11,12 +11,14 @@ fn check(root: &Path) -> std::process::Output {
     Command::new(python).arg(repo().join("scripts/results.py")).arg("check").arg(root).output().unwrap()
 }
 
-/// The pages, records and README of the repository, copied where a test may change them.
+/// The pages, records, README and recipes of the repository (a record's block says which of
+/// its recipes changed since it ran), copied where a test may change them.
 fn copy(to: &Path) {
     let root = repo();
     std::fs::create_dir_all(to.join("docs/results/records")).unwrap();
+    std::fs::create_dir_all(to.join("passes")).unwrap();
     std::fs::copy(root.join("README.md"), to.join("README.md")).unwrap();
-    for dir in ["docs/results", "docs/results/records"] {
+    for dir in ["docs/results", "docs/results/records", "passes"] {
         for e in std::fs::read_dir(root.join(dir)).unwrap() {
             let e = e.unwrap();
             if e.file_type().unwrap().is_file() {
@@ -60,5 +62,24 @@ fn a_figure_typed_into_the_readme_table_is_caught() {
     std::fs::write(&readme, changed).unwrap();
     let out = check(dir.path());
     assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("README.md differs"), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+#[test]
+fn a_recipe_that_computes_something_else_since_its_record_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    copy(dir.path());
+    let recipe = dir.path().join("passes/detect-int8.yaml");
+    let text = std::fs::read_to_string(&recipe).unwrap();
+    // Its description's wording changes no byte of what it builds: the pages stand.
+    std::fs::write(&recipe, text.replacen("description: >\n", "description: >\n  Reworded.\n", 1)).unwrap();
+    let out = check(dir.path());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // An option does: every record that ran it now reads as the recipe that was.
+    let changed = text.replacen("calib_frames: 64", "calib_frames: 65", 1);
+    assert_ne!(changed, text, "detect-int8 no longer sets calib_frames: 64; update this test");
+    std::fs::write(&recipe, changed).unwrap();
+    let out = check(dir.path());
+    assert_eq!(out.status.code(), Some(1), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(String::from_utf8_lossy(&out.stderr).contains("README.md differs"), "{}", String::from_utf8_lossy(&out.stderr));
 }
