@@ -45,7 +45,8 @@ pub struct Options {
     /// `uniform`: the same ratio in every group; `global`: one threshold on group-normalized
     /// importance across the model. Ignored with `target`.
     pub scope: Scope,
-    /// Kept channel counts are multiples of this (8 for CPUs' SIMD lanes, 16 for RKNN).
+    /// Kept channel counts are multiples of this where a group has at least twice as many (16:
+    /// ONNX Runtime's blocks on AVX-512 and the RK3588's alignment; 8: AVX2's lanes).
     pub round_to: usize,
     /// What repairs the layers after a cut: `none`, `bias` (mean-shift of the biases), `lstsq`
     /// (ridge refit of the next dense convolution, then the mean shift).
