@@ -421,6 +421,7 @@ HISTORY_COLUMNS = {
     "latency-640": ["int8", "int8-head", "pruned-f32", "pruned-int8", "pruned-f32-round16", "pruned-f32-round8",
                     "pruned-f32-latency"],
     "latency-256": ["int8", "int8-2d", "int8-head", "int8-silu"],
+    "latency-640-full": ["int8", "pruned-f32", "pruned-int8"],
 }
 
 
