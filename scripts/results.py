@@ -1081,15 +1081,10 @@ def repeat(before, record):
             "differ": [{"figure": k, "before": old[k], "now": new[k]} for k in shared if old[k] != new[k]]}
 
 
-def ort_ratios(figures):
-    """Each variant's latency against `detect-f32` on ONNX Runtime, from a latency record."""
-    return {r["variant"]: round(r["ratio"], 3) for r in figures.get("rows", []) if r.get("engine") == "ort"}
-
-
 # Records whose figures move with the host from loop to loop: each keeps what every earlier
 # committed version of itself measured (name -> the figures kept), so that a goal line is read
 # off every loop, not the last one alone.
-HISTORY = {"latency-640": ort_ratios, "latency-256": ort_ratios, "latency-640-full": ort_ratios}
+HISTORY = {n: results_render.ort_ratios for n in ("latency-640", "latency-256", "latency-640-full")}
 
 
 def history(name, started):
@@ -1104,6 +1099,10 @@ def history(name, started):
         seen.add(r["started"])
         out.append({"commit": r["commit"], "date": r["date"], "machine": r["machine"], "figures": HISTORY[name](r["figures"])})
     return out
+
+
+def write_record(path, record):
+    path.write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
 
 
 def git(*args):
@@ -1167,7 +1166,7 @@ def measure(names, tier):
         record["repeat"] = repeat(previous(name), record)
         if name in HISTORY:
             record["history"] = history(name, record["started"])
-        (ROOT / RECORDS / f"{name}.json").write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
+        write_record(ROOT / RECORDS / f"{name}.json", record)
         print(f"results: {name}: recorded in {record['seconds']:.0f} s", file=sys.stderr, flush=True)
     return failed
 
@@ -1196,13 +1195,13 @@ def main():
                 names = git("ls-tree", "--name-only", record["commit"], "passes/").split()
                 record["recipes"] = results_render.digests(
                     {Path(n).stem: git("show", f"{record['commit']}:{n}") + "\n" for n in names if n.endswith(".yaml")})
-                path.write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
+                write_record(path, record)
     if a.what == "history":
         for name in HISTORY:
             path = ROOT / RECORDS / f"{name}.json"
             record = json.loads(path.read_text())
             record["history"] = history(name, record["started"])
-            path.write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
+            write_record(path, record)
     if a.what == "check":
         sys.exit(results_render.check(a.root))
     results_render.write(ROOT)

@@ -25,8 +25,12 @@ def load(root):
 
 # --- words and numbers -----------------------------------------------------------------------
 
+def cpu(m):
+    return f"{m['cpu']}{' (AVX-512)' if m.get('avx512') else ''}"
+
+
 def machine(m):
-    s = f"{m['cores']}-core {m['cpu']}{' (AVX-512)' if m.get('avx512') else ''}, {m['threads']} threads"
+    s = f"{m['cores']}-core {cpu(m)}, {m['threads']} threads"
     return s + (f", GPU {m['gpu']}" if m.get("gpu") else ", no GPU")
 
 
@@ -74,8 +78,8 @@ def shipped(root):
 
 # Recipes a command runs without naming a file: `ship` compiles its variants from these (the
 # last one's own passes only, on the pruned variant).
-IMPLIED = {"pdi-compile ship": (["detect-f32", "detect-pruned-rknn"], ["detect-pruned-int8"]),
-           "scripts/demo": (["detect-f32", "detect-pruned-rknn"], ["detect-pruned-int8"])}
+SHIP = (["detect-f32", "detect-pruned-rknn"], ["detect-pruned-int8"])
+IMPLIED = {"pdi-compile ship": SHIP, "scripts/demo": SHIP}
 
 
 def used(r, texts):
@@ -416,6 +420,11 @@ BLOCKS = {"lossless": lossless, "latency-640": latency, "latency-640-full": late
           "broken-builds": broken_builds, "suite": suite}
 
 
+def ort_ratios(figures):
+    """Each variant's latency against `detect-f32` on ONNX Runtime, from a latency record."""
+    return {r["variant"]: round(r["ratio"], 3) for r in figures.get("rows", []) if r.get("engine") == "ort"}
+
+
 # The ratios a latency record's history table shows, in this order, where a loop measured them.
 HISTORY_COLUMNS = {
     "latency-640": ["int8", "int8-head", "pruned-f32", "pruned-int8", "pruned-f32-round16", "pruned-f32-round8",
@@ -428,12 +437,12 @@ HISTORY_COLUMNS = {
 def history(r):
     """Every loop the record has run in, this one last: the recipes as they were at each commit."""
     runs = r["history"] + [{"commit": r["commit"], "date": r["date"], "machine": r["machine"],
-                            "figures": {x["variant"]: x["ratio"] for x in r["figures"]["rows"] if x["engine"] == "ort"}}]
+                            "figures": ort_ratios(r["figures"])}]
     cols = [c for c in HISTORY_COLUMNS[r["name"]] if any(c in h["figures"] for h in runs)]
     return [f"Every run of this record, against `detect-f32` on ONNX Runtime (the recipes as they were at each "
             f"commit; the CPU's drift moves a ratio by up to a third from run to run):", ""] + \
         table(["date", "commit", "CPU"] + [f"`{c}`" for c in cols],
-              [[h["date"], h["commit"][:7], h["machine"]["cpu"] + (" (AVX-512)" if h["machine"].get("avx512") else "")]
+              [[h["date"], h["commit"][:7], cpu(h["machine"])]
                + [f"{h['figures'][c]:.3f}×" if c in h["figures"] else "-" for c in cols] for h in runs])
 
 
