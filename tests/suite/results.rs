@@ -11,6 +11,14 @@ fn check(root: &Path) -> std::process::Output {
     Command::new(python).arg(repo().join("scripts/results.py")).arg("check").arg(root).output().unwrap()
 }
 
+/// `check` on `root`, which must find the pages stale: what it said on stderr.
+fn stale(root: &Path) -> String {
+    let out = check(root);
+    let said = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert_eq!(out.status.code(), Some(1), "{said}");
+    said
+}
+
 /// The pages, records, README and recipes of the repository (a record's block says which of
 /// its recipes changed since it ran), copied where a test may change them.
 fn copy(to: &Path) {
@@ -45,9 +53,7 @@ fn a_record_that_changes_makes_the_pages_stale() {
     let changed = text.replacen("\"date\": \"", "\"date\": \"1999-", 1);
     assert_ne!(changed, text);
     std::fs::write(&first, changed).unwrap();
-    let out = check(dir.path());
-    assert_eq!(out.status.code(), Some(1), "{}", String::from_utf8_lossy(&out.stderr));
-    assert!(String::from_utf8_lossy(&out.stderr).contains("differs from its records"));
+    assert!(stale(dir.path()).contains("differs from its records"));
 }
 
 #[test]
@@ -60,9 +66,8 @@ fn a_figure_typed_into_the_readme_table_is_caught() {
     let at = row + text[row..].find("| lossless").expect("a lossless row");
     let changed = format!("{}| lossless compile, typed by hand | 1.000× | here |\n{}", &text[..at], &text[at..]);
     std::fs::write(&readme, changed).unwrap();
-    let out = check(dir.path());
-    assert_eq!(out.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&out.stderr).contains("README.md differs"), "{}", String::from_utf8_lossy(&out.stderr));
+    let said = stale(dir.path());
+    assert!(said.contains("README.md differs"), "{said}");
 }
 
 #[test]
@@ -79,7 +84,6 @@ fn a_recipe_that_computes_something_else_since_its_record_is_named() {
     let changed = text.replacen("calib_frames: 64", "calib_frames: 65", 1);
     assert_ne!(changed, text, "detect-int8 no longer sets calib_frames: 64; update this test");
     std::fs::write(&recipe, changed).unwrap();
-    let out = check(dir.path());
-    assert_eq!(out.status.code(), Some(1), "{}", String::from_utf8_lossy(&out.stderr));
-    assert!(String::from_utf8_lossy(&out.stderr).contains("README.md differs"), "{}", String::from_utf8_lossy(&out.stderr));
+    let said = stale(dir.path());
+    assert!(said.contains("README.md differs"), "{said}");
 }
