@@ -121,7 +121,7 @@ pub fn image_feeds_from(graph: &Graph, inf: &Inferred, folder: Option<&Path>, fi
 
 /// The most bytes of f32 pixels a training set may take. A training pass holds its frames in
 /// this process, in the file handed to the torch worker and in the worker (three copies), so
-/// 1 GiB keeps it well inside a 24 GiB machine: 2048 frames at 256x192 take 0.4 GiB; at
+/// 1 GiB keeps it well inside a 24 GiB machine: 4096 frames at 256x192 take 0.8 GiB; at
 /// 640x480, 873 fit.
 const TRAINING_FRAME_BYTES: usize = 1 << 30;
 

@@ -147,7 +147,7 @@ fn a_pruned_compile_is_byte_identical_when_repeated_under_load() {
     // detect-pruned-int8 is `base: detect-pruned-f32` plus INT8: the edited copy beside it is
     // the base it reads.
     let text = std::fs::read_to_string(repo().join("passes/detect-pruned-f32.yaml")).unwrap();
-    let shipped = "recover: {steps: 8000, lr: 3.0e-3, batch: 8, frames: 2048}";
+    let shipped = "recover: {steps: 8000, lr: 3.0e-3, batch: 8, frames: 4096}";
     assert!(text.contains(shipped), "detect-pruned-f32's recover line moved; update this test");
     std::fs::write(dir.path().join("detect-pruned-f32.yaml"), text.replace(shipped, "recover: {steps: 30, lr: 3.0e-3, batch: 8, frames: 64}")).unwrap();
     let int8 = std::fs::read_to_string(repo().join("passes/detect-pruned-int8.yaml")).unwrap();
