@@ -496,15 +496,15 @@ def readme_rows(recs):
         row(f"prune + recover (`detect-pruned-f32` as shipped: {steps} steps on the CPU, recovery {took})",
             f"{fs[0]['macs_ratio']:.0%} of the MACs; keeps "
             + " and ".join(f"{f['kept_f32']:.3f}× ({f['model']}: {f['map_f32']:.3f} of {f['map_original']:.3f})" for f in fs)
-            + " of the mAP", cpu[0]["name"], "pruning.md")
+            + " of the mAP", [r["name"] for r in cpu], "pruning.md")
         row("+ INT8 (`detect-pruned-int8`)",
-            "keeps " + " and ".join(f"{f['kept_int8']:.3f}× ({f['model']})" for f in fs), cpu[0]["name"], "pruning.md")
+            "keeps " + " and ".join(f"{f['kept_int8']:.3f}× ({f['model']})" for f in fs), [r["name"] for r in cpu], "pruning.md")
     gpu = [recs[n] for n in ("pruned-v5-w0.25-gpu", "pruned-v8-w0.25-gpu") if n in recs]
     if gpu:
         fs = [r["figures"] for r in gpu]
         row(f"`detect-pruned-f32` as shipped on a GPU ({gpu[0]['machine']['gpu']})",
             "recovery in " + " / ".join(f"{dur(f['recover']['seconds'])} ({f['model']})" for f in fs)
-            + "; keeps " + " / ".join(f"{f['kept_f32']:.3f}×" for f in fs), gpu[0]["name"], "pruning.md")
+            + "; keeps " + " / ".join(f"{f['kept_f32']:.3f}×" for f in fs), [r["name"] for r in gpu], "pruning.md")
     if "camera-640" in recs:
         ms = recs["camera-640"]["figures"]["models"]
         row("the width-0.25 models fine-tuned at the camera's 640×480 (on 256×192 crops)",
@@ -523,7 +523,7 @@ def readme_rows(recs):
             f"{fs[0]['calib_frames']} unlabelled frames of other scenes)",
             "keeps " + "; ".join(f"{f['kept_f32']:.3f}× / {f['kept_int8']:.3f}× ({f['model'].split(' at ')[0]}, "
                                  f"{f['macs_ratio']:.2f}× the MACs)" for f in fs),
-            away[0]["name"], "pruning.md")
+            [r["name"] for r in away], "pruning.md")
     for name in ("ship-640-v5", "ship-640-v8"):
         if name in recs:
             f = recs[name]["figures"]
@@ -595,12 +595,19 @@ def readme_table(recs, texts, now):
              f"({dates[0]}{' to ' + dates[-1] if dates[-1] != dates[0] else ''}) unless a row says otherwise; "
              "mAP@0.5:0.95 against the labels of 200 held-out frames of `scripts/eval-set`:", ""]
     rows = []
-    for task, result, name, page in readme_rows(recs):
-        r = recs[name]
-        where = "" if machine(r["machine"]) == common else f"; {machine(r['machine'])}"
-        stale = changed_since(r, texts, now)
-        since = f" (recipe changed since: {', '.join(f'`{n}`' for n in stale)})" if stale else ""
-        rows.append([task, result, f"[{r['date']}{where}](docs/results/{page}){since}"])
+    for task, result, names, page in readme_rows(recs):
+        # A row may read several records (one per model): each one's date, machine and
+        # recipes count, not only the first's.
+        rs = [recs[n] for n in ([names] if isinstance(names, str) else names)]
+        dates = " / ".join(dict.fromkeys(r["date"] for r in rs))
+        where = "".join(f"; {m}" for m in dict.fromkeys(machine(r["machine"]) for r in rs) if m != common)
+        stale = {r["name"]: changed_since(r, texts, now) for r in rs}
+        lists = {tuple(s) for s in stale.values()}
+        # Every record stale the same way: said once; otherwise each stale record by name.
+        named = {"": next(iter(lists))} if len(lists) == 1 else stale
+        since = "".join(f" ({'`' + n + '`: ' if n else ''}recipe changed since: {', '.join(f'`{x}`' for x in s)})"
+                        for n, s in named.items() if s)
+        rows.append([task, result, f"[{dates}{where}](docs/results/{page}){since}"])
     return lines + table(["task", "result", "record"], rows)
 
 

@@ -87,3 +87,31 @@ fn a_recipe_that_computes_something_else_since_its_record_is_named() {
     let said = stale(dir.path());
     assert!(said.contains("README.md differs"), "{said}");
 }
+
+/// A README row that reads one record per model names the stale one, not only the first's:
+/// here the v5's record ran a `detect-pruned-f32` that computed something else, the v8's the
+/// checkout's.
+#[test]
+fn a_row_of_two_records_names_the_one_whose_recipe_changed() {
+    let dir = tempfile::tempdir().unwrap();
+    copy(dir.path());
+    let python = std::env::var("PDI_PYTHON").expect("PDI_PYTHON is not set: run the suite with scripts/test");
+    let script = r#"
+import json, sys
+from pathlib import Path
+root = Path(sys.argv[2]); sys.path.insert(0, sys.argv[1])
+import results_render as r
+now = r.digests(r.shipped(root))
+for name, recipes in (("pruned-v5-w0.25", dict(now, **{"detect-pruned-f32": "computed-else"})), ("pruned-v8-w0.25", now)):
+    path = root / "docs/results/records" / f"{name}.json"
+    record = json.loads(path.read_text()); record["recipes"] = recipes
+    path.write_text(json.dumps(record))
+r.write(root)
+"#;
+    let out = Command::new(python).arg("-c").arg(script).arg(repo().join("scripts")).arg(dir.path()).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let readme = std::fs::read_to_string(dir.path().join("README.md")).unwrap();
+    let row = readme.lines().find(|l| l.starts_with("| prune + recover")).expect("the pruned records' row");
+    assert!(row.ends_with("(`pruned-v5-w0.25`: recipe changed since: `detect-pruned-f32`) |"), "{row}");
+    assert!(!row.contains("pruned-v8-w0.25"), "{row}");
+}
