@@ -6,9 +6,13 @@ use crate::common::repo;
 use std::path::Path;
 use std::process::Command;
 
+/// The Python of the cache's environment, which the pages' renderer runs in.
+fn python() -> Command {
+    Command::new(std::env::var("PDI_PYTHON").expect("PDI_PYTHON is not set: run the suite with scripts/test"))
+}
+
 fn check(root: &Path) -> std::process::Output {
-    let python = std::env::var("PDI_PYTHON").expect("PDI_PYTHON is not set: run the suite with scripts/test");
-    Command::new(python).arg(repo().join("scripts/results.py")).arg("check").arg(root).output().unwrap()
+    python().arg(repo().join("scripts/results.py")).arg("check").arg(root).output().unwrap()
 }
 
 /// `check` on `root`, which must find the pages stale: what it said on stderr.
@@ -95,7 +99,6 @@ fn a_recipe_that_computes_something_else_since_its_record_is_named() {
 fn a_row_of_two_records_names_the_one_whose_recipe_changed() {
     let dir = tempfile::tempdir().unwrap();
     copy(dir.path());
-    let python = std::env::var("PDI_PYTHON").expect("PDI_PYTHON is not set: run the suite with scripts/test");
     let script = r#"
 import json, sys
 from pathlib import Path
@@ -108,7 +111,7 @@ for name, recipes in (("pruned-v5-w0.25", dict(now, **{"detect-pruned-f32": "com
     path.write_text(json.dumps(record))
 r.write(root)
 "#;
-    let out = Command::new(python).arg("-c").arg(script).arg(repo().join("scripts")).arg(dir.path()).output().unwrap();
+    let out = python().arg("-c").arg(script).arg(repo().join("scripts")).arg(dir.path()).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let readme = std::fs::read_to_string(dir.path().join("README.md")).unwrap();
     let row = readme.lines().find(|l| l.starts_with("| prune + recover")).expect("the pruned records' row");
