@@ -121,9 +121,9 @@ pub fn image_feeds_from(graph: &Graph, inf: &Inferred, folder: Option<&Path>, fi
 
 /// The most bytes of f32 pixels a training set may take. A training pass holds its frames in
 /// this process, in the file handed to the torch worker and in the worker (three copies), so
-/// 1 GiB keeps it well inside a 24 GiB machine: 4096 frames at 256x192 take 0.8 GiB; at
-/// 640x480, 873 fit.
-const TRAINING_FRAME_BYTES: usize = 1 << 30;
+/// 2 GiB keeps it well inside a 24 GiB machine: 8192 frames at 256x192 take 1.5 GiB; at
+/// 640x480, 1747 fit.
+const TRAINING_FRAME_BYTES: usize = 2 << 30;
 
 /// `asked` training frames for `pass`, or as many as fit in TRAINING_FRAME_BYTES at the image
 /// input's size (with a warning), never fewer than 64.
@@ -131,7 +131,7 @@ pub fn affordable_frames(pass: &str, graph: &Graph, inf: &Inferred, asked: usize
     let per_frame = image_input(graph, inf).and_then(|i| inf.shape(&i)).map_or(0, |s| s.iter().map(|&d| d.max(1)).product::<usize>() * 4);
     let fit = (TRAINING_FRAME_BYTES / per_frame.max(1)).max(64);
     if asked > fit {
-        crate::warn::warn(format!("{pass}: {asked} training frames of {per_frame} bytes would take over 1 GiB; training on {fit} (ask for at most {fit} to silence this)"));
+        crate::warn::warn(format!("{pass}: {asked} training frames of {per_frame} bytes would take over {} GiB; training on {fit} (ask for at most {fit} to silence this)", TRAINING_FRAME_BYTES >> 30));
         return fit;
     }
     asked

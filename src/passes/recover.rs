@@ -40,7 +40,7 @@ use anyhow::{anyhow, bail, Result};
 pub struct Options {
     #[serde(flatten)]
     pub schedule: Schedule,
-    /// Training frames (unlabelled), at most what fits in 1 GiB of pixels; 16 more are held
+    /// Training frames (unlabelled), at most what fits in 2 GiB of pixels; 16 more are held
     /// out to judge the result.
     pub frames: usize,
     /// Seed of frame order, augmentation and the simulated frames.

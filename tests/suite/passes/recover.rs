@@ -260,7 +260,7 @@ fn two_gloo_ranks_train_the_weights_of_one_process() {
 /// The full-size v5 (width 1.0, 640x480, random weights: what the paper deploys) through
 /// pruning and a short recovery on the CPU, end to end: the export, the lossless passes, a
 /// structured cut, 2 training steps of batch 2, the held-out rule. Its training frames stay
-/// within the 1 GiB the pass holds in memory, and the report gives the frame rate.
+/// within the 2 GiB the pass holds in memory, and the report gives the frame rate.
 #[test]
 fn the_full_size_model_recovers_end_to_end_on_the_cpu() {
     let dir = tempfile::tempdir().unwrap();
@@ -278,8 +278,8 @@ fn the_full_size_model_recovers_end_to_end_on_the_cpu() {
     assert!(r["training"]["frames_per_second"].as_f64().unwrap() > 0.0, "{r}");
     let frames = r["frames"].as_u64().unwrap();
     // 8 asked for plus the draw that holds out a quarter for the rule: all in memory, far
-    // under the pass's 1 GiB of pixels (which caps a larger ask, with a warning).
-    assert!(frames >= 8 && frames * 640 * 480 * 4 <= 1 << 30, "{frames} training frames held");
+    // under the pass's 2 GiB of pixels (which caps a larger ask, with a warning).
+    assert!(frames >= 8 && frames * 640 * 480 * 4 <= 2 << 30, "{frames} training frames held");
     // The held-out rule's decision follows from what it reports: kept exactly when the
     // detections agree better with the unpruned model's, or on a tie when the worst output
     // group got closer (two steps may go either way).
