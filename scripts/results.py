@@ -465,6 +465,9 @@ DIRECTIONS = {
     "frames8192": ("8192 training frames instead of 4096, the same steps (4096 instead of 2048 rose the v8 from "
                    "0.937x to 0.955x of the unpruned mAP)",
                    PRUNE + RECOVER.replace("frames: 4096", "frames: 8192")),
+    "seed1": ("the recipe as shipped with recovery's seed 1 instead of 0 (other simulated frames, their order and "
+              "augmentation): how far one recovery moves from the next",
+              PRUNE + RECOVER.replace("}\n", ", seed: 1}\n")),
     "v5-edges": ("the YOLOv5 box sides' absolute error in recovery (`v5_box_edges: 16`), as YOLOv8's box edges",
                  PRUNE + RECOVER.replace("}\n", ", v5_box_edges: 16}\n")),
     "box-iou": ("1 − IoU between the student's and the teacher's YOLOv8 boxes in recovery (`box_iou: 16`), "
@@ -480,7 +483,7 @@ DIRECTIONS = {
                        lambda ctx, text, path: two_cuts(halfway(ctx, text, path))),
 }
 # The heads a direction changes anything on (the rest: both).
-ONLY = {"frames8192": ("v8 w0.25",), "v5-edges": ("v5 w0.25",), "box-iou": ("v8 w0.25",), "box-iou-64": ("v8 w0.25",), "box-iou-256": ("v8 w0.25",)}
+ONLY = {"frames8192": ("v8 w0.25",), "seed1": ("v8 w0.25",), "v5-edges": ("v5 w0.25",), "box-iou": ("v8 w0.25",), "box-iou-64": ("v8 w0.25",), "box-iou-256": ("v8 w0.25",)}
 
 
 def halfway(ctx, text, path):
