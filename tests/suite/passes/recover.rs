@@ -294,6 +294,22 @@ fn the_full_size_model_recovers_end_to_end_on_the_cpu() {
     assert!(macs("after") < 0.5 * macs("before"), "pruned: {} of {} MACs", macs("after"), macs("before"));
 }
 
+/// A training set holds what fits in 2 GiB of f32 pixels at the image input's size: an ask
+/// that fits passes whole, a larger one trains on what fits (10922 frames at 256x192, 1747 at
+/// 640x480).
+#[test]
+fn a_training_set_holds_two_gib_of_pixels() {
+    use pdi_compile::calib_frames::affordable_frames;
+    use pdi_compile::ir::{infer, Graph};
+    for (model, fit) in [("pdinet_v5_w0.25_trained.onnx", 10922), ("pdinet_v5_w0.25_640x480_trained.onnx", 1747)] {
+        let m = load(&repo().join("models/trained").join(model));
+        let g = Graph::build(m.graph.as_ref().unwrap()).unwrap();
+        let inf = infer(&g);
+        assert_eq!(affordable_frames("recover", &g, &inf, fit), fit, "{model}");
+        assert_eq!(affordable_frames("recover", &g, &inf, fit + 1), fit, "{model}");
+    }
+}
+
 /// Training on crops of 640x480 frames: the plan cuts exactly the three folded PSF gate maps
 /// (one value per cell of the stride-4 grid) with each window, on the coarsest head grid;
 /// whole frames at 256x192 or with `crop: none`. A model that fixes a shape from the frame's
