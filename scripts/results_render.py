@@ -498,15 +498,16 @@ def readme_rows(recs):
                        for r in reseeded)
     if cpu:
         fs = [r["figures"] for r in cpu]
+        names = [r["name"] for r in cpu + reseeded]
         steps = " / ".join(str(f["recover"]["steps"]) for f in fs)
         took = " / ".join(dur(f["recover"]["seconds"]) for f in fs)
         row(f"prune + recover (`detect-pruned-f32` as shipped: {steps} steps on the CPU, recovery {took})",
             f"{fs[0]['macs_ratio']:.0%} of the MACs; keeps "
             + " and ".join(f"{f['kept_f32']:.3f}× ({f['model']}: {f['map_f32']:.3f} of {f['map_original']:.3f})" for f in fs)
-            + " of the mAP" + seeds("kept_f32"), [r["name"] for r in cpu + reseeded], "pruning.md")
+            + " of the mAP" + seeds("kept_f32"), names, "pruning.md")
         row("+ INT8 (`detect-pruned-int8`)",
-            "keeps " + " and ".join(f"{f['kept_int8']:.3f}× ({f['model']})" for f in fs) + seeds("kept_int8"),
-            [r["name"] for r in cpu + reseeded], "pruning.md")
+            "keeps " + " and ".join(f"{f['kept_int8']:.3f}× ({f['model']})" for f in fs) + seeds("kept_int8"), names,
+            "pruning.md")
     gpu = [recs[n] for n in ("pruned-v5-w0.25-gpu", "pruned-v8-w0.25-gpu") if n in recs]
     if gpu:
         fs = [r["figures"] for r in gpu]
