@@ -263,7 +263,7 @@ fn allocate(original: &ModelProto, analysis: &crate::analysis::channels::Channel
             if keep >= g.classes.len() || levels.last().is_some_and(|l| l.keep == keep) {
                 continue;
             }
-            let damage = worst_rel_l2(&reference.errors(&m)?);
+            let damage = reference.damage(&m)?;
             levels.push(Level { ratio, keep, damage, macs_saved: base.saturating_sub(counts(&m)?.macs) });
         }
         if !levels.is_empty() {

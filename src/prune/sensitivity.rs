@@ -2,8 +2,10 @@
 //! outputs, and per-group ratios that meet a budget with the least predicted damage.
 //!
 //! Damage is the worst output group's rel L2 (boxes, objectness, classes judged apart)
-//! against the unpruned model on calibration frames, with no compensation: what recovery
-//! starts from. The allocation is greedy on damage per MAC saved, one level of one group at
+//! against the unpruned model on calibration frames, with no compensation (what recovery
+//! starts from), or the confident boxes' error as a fraction of their own size where that is
+//! larger: a box branch's cut barely moves the boxes' pixel coordinates against their norm,
+//! and costs mAP at high IoU all the same. The allocation is greedy on damage per MAC saved, one level of one group at
 //! a time (squared rel L2 per MAC saved), and checks the budget on the real pruned model after every step (MAC savings of
 //! neighbouring groups do not add up: a convolution between two pruned groups loses both).
 
@@ -19,7 +21,8 @@ pub struct Level {
     pub ratio: f64,
     /// Channels kept at this ratio (after rounding).
     pub keep: usize,
-    /// Worst output group's rel L2 with only this group pruned.
+    /// Worst output group's rel L2, or the confident boxes' error at their scale where larger,
+    /// with only this group pruned.
     pub damage: f64,
     /// MACs this group's pruning alone removes.
     pub macs_saved: u64,

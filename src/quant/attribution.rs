@@ -12,6 +12,7 @@ use super::qdq::add_qdq;
 use crate::analysis::head;
 use crate::detect::decode::channel_groups;
 use crate::ir::{infer, Graph};
+use crate::metrics::box_error::BoxErrorSums;
 use crate::metrics::tensor_error::{ErrorSums, TensorError};
 use crate::onnx::edit::{expose_outputs, fresh_name, set_initializer};
 use crate::ir::rewrite::topo::sort_topologically;
@@ -205,8 +206,22 @@ impl<'a> ReferenceOutputs<'a> {
     /// accelerator with exact int32 sums computes), where `Level3` fuses it into the CPU's
     /// integer kernels (which saturate with 8-bit weights on x86 without VNNI).
     pub fn errors_at(&self, candidate: &ModelProto, level: GraphOptimizationLevel) -> Result<Vec<OutputError>> {
+        Ok(self.measure(candidate, level)?.0)
+    }
+
+    /// What pruning a group costs (`prune`'s sensitivity): the worst output group's rel L2,
+    /// or, where larger, the confident boxes' error at their own scale ([`BoxErrorSums`]): a
+    /// cut to a decoder's box branch moves the boxes' pixel coordinates by little against
+    /// their norm and costs the high-IoU part of mAP@0.5:0.95 all the same.
+    pub fn damage(&self, candidate: &ModelProto) -> Result<f64> {
+        let (errors, boxes) = self.measure(candidate, GraphOptimizationLevel::Level3)?;
+        Ok(worst_rel_l2(&errors).max(boxes.finish()))
+    }
+
+    fn measure(&self, candidate: &ModelProto, level: GraphOptimizationLevel) -> Result<(Vec<OutputError>, BoxErrorSums)> {
         let mut c = OrtRuntime::with_options(candidate, level, self.threads)?;
         let mut sums: BTreeMap<(usize, Option<&'static str>), ErrorSums> = BTreeMap::new();
+        let mut boxes = BoxErrorSums::default();
         for (feed, ro) in self.feeds.iter().zip(&self.runs) {
             let co = match self.scene {
                 None => c.run(feed)?,
@@ -216,6 +231,7 @@ impl<'a> ReferenceOutputs<'a> {
                 let (x, y) = (a.data.to_f64(), b.data.to_f64());
                 sums.entry((k, None)).or_default().add(x.iter().copied(), y.iter().copied());
                 if self.head.output.as_deref() == Some(name.as_str()) {
+                    boxes.add(self.head.kind, a, b);
                     for (group, range) in channel_groups(self.head.kind, &a.shape) {
                         let (x, y) = (crate::metrics::validation::select_channels(self.head.kind, a, range.clone()), crate::metrics::validation::select_channels(self.head.kind, b, range));
                         sums.entry((k, Some(group))).or_default().add(x.into_iter(), y.into_iter());
@@ -223,7 +239,7 @@ impl<'a> ReferenceOutputs<'a> {
                 }
             }
         }
-        Ok(sums.into_iter().map(|((k, group), s)| OutputError { output: self.names[k].clone(), group, error: s.finish() }).collect())
+        Ok((sums.into_iter().map(|((k, group), s)| OutputError { output: self.names[k].clone(), group, error: s.finish() }).collect(), boxes))
     }
 }
 
