@@ -30,15 +30,13 @@ impl BoxErrorSums {
             return;
         }
         let (a, b) = (reference.data.to_f64(), candidate.data.to_f64());
-        let s = &reference.shape;
-        let (n, at): (usize, Box<dyn Fn(&[f64], usize, usize) -> f64>) = match kind {
-            HeadKind::Yolov5Anchor if s[2] > 5 => (s[1], Box::new(move |v, c, i| v[i * s[2] + c])),
-            HeadKind::Yolov8Dfl if s[1] > 4 => (s[2], Box::new(move |v, c, i| v[c * s[2] + i])),
+        let (rows, cols) = (reference.shape[1], reference.shape[2]);
+        // Anchors, value count per anchor, first class value, and value c of anchor i.
+        type At = Box<dyn Fn(&[f64], usize, usize) -> f64>;
+        let (n, channels, first_class, at): (usize, usize, usize, At) = match kind {
+            HeadKind::Yolov5Anchor if cols > 5 => (rows, cols, 5, Box::new(move |v, c, i| v[i * cols + c])),
+            HeadKind::Yolov8Dfl if rows > 4 => (cols, rows, 4, Box::new(move |v, c, i| v[c * cols + i])),
             _ => return,
-        };
-        let (channels, first_class) = match kind {
-            HeadKind::Yolov5Anchor => (s[2], 5),
-            _ => (s[1], 4),
         };
         for i in 0..n {
             let best = (first_class..channels).map(|c| at(&a, c, i)).fold(0.0, f64::max);
@@ -68,7 +66,6 @@ impl BoxErrorSums {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::tensor::Tensor;
 
     /// A YOLOv8 output with one box per anchor (cx, cy, w, h) and its single class score.
     fn v8(boxes: &[[f32; 4]], scores: &[f32]) -> Tensor {
