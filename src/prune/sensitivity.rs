@@ -5,9 +5,10 @@
 //! against the unpruned model on calibration frames, with no compensation (what recovery
 //! starts from), or the confident boxes' error as a fraction of their own size where that is
 //! larger: a box branch's cut barely moves the boxes' pixel coordinates against their norm,
-//! and costs mAP at high IoU all the same. The allocation is greedy on damage per MAC saved, one level of one group at
-//! a time (squared rel L2 per MAC saved), and checks the budget on the real pruned model after every step (MAC savings of
-//! neighbouring groups do not add up: a convolution between two pruned groups loses both).
+//! and costs mAP at high IoU all the same. The allocation is greedy on damage per MAC saved,
+//! one level of one group at a time (squared damage per MAC saved), and checks the budget on
+//! the real pruned model after every step (MAC savings of neighbouring groups do not add up:
+//! a convolution between two pruned groups loses both).
 
 use serde::Serialize;
 use std::collections::HashMap;
@@ -59,7 +60,7 @@ pub fn allocate(groups: &mut [GroupSensitivity], mut budget: Budget, macs_of: &m
         if met {
             return Ok((ratios, true));
         }
-        // Independent perturbations add in energy: the greedy adds squared rel L2 (a group
+        // Independent perturbations add in energy: the greedy adds squared damage (a group
         // that nearly destroys the outputs alone is never worth its MACs).
         let cost = |g: &GroupSensitivity, l: Option<usize>| l.map_or((0.0, 0), |i| (g.levels[i].damage.powi(2), g.levels[i].macs_saved));
         let next = groups
