@@ -477,13 +477,16 @@ DIRECTIONS = {
                    PRUNE + RECOVER.replace("}\n", ", box_iou: 64}\n")),
     "box-iou-256": ("recovery's YOLOv8 box IoU term at 256 instead of 64 (16 to 64 rose the v8 from 0.910x to 0.929x)",
                     PRUNE + RECOVER.replace("}\n", ", box_iou: 256}\n")),
+    "pseudo-labels": ("the teacher's detections (score above 0.25, after NMS) as labels for YOLOv8's own loss in "
+                      "recovery (`pseudo_labels: 4`), beside the distillation",
+                      PRUNE + RECOVER.replace("}\n", ", pseudo_labels: 4}\n")),
     "one-allocation": ("two cuts along one allocation: the shipped allocation to 28% of the MACs, measured once on "
                        "the unpruned model; each group keeps the square root of its final share, 3000 steps of "
                        "recovery, then the same ratios again, 5000 steps",
                        lambda ctx, text, path: two_cuts(halfway(ctx, text, path))),
 }
 # The heads a direction changes anything on (the rest: both).
-ONLY = {"frames8192": ("v8 w0.25",), "seed1": ("v8 w0.25",), "v5-edges": ("v5 w0.25",), "box-iou": ("v8 w0.25",), "box-iou-64": ("v8 w0.25",), "box-iou-256": ("v8 w0.25",)}
+ONLY = {"frames8192": ("v8 w0.25",), "seed1": ("v8 w0.25",), "v5-edges": ("v5 w0.25",), "box-iou": ("v8 w0.25",), "box-iou-64": ("v8 w0.25",), "box-iou-256": ("v8 w0.25",), "pseudo-labels": ("v8 w0.25",)}
 
 
 def halfway(ctx, text, path):

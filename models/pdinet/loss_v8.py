@@ -83,8 +83,10 @@ def dfl_loss(dist, target, reg_max):
     return (ce(tl) * wl + ce(tl + 1) * (1 - wl)).mean(-1)
 
 
-def yolo_v8_loss(feats, targets, nc, reg_max, img_wh):
-    """feats: list of [bs, 4 * reg_max + nc, ny, nx]; targets: [n, 6] (img, cls, cx, cy, w, h) normalized."""
+def yolo_v8_loss(feats, targets, nc, reg_max, img_wh, normalizer=None):
+    """feats: list of [bs, 4 * reg_max + nc, ny, nx]; targets: [n, 6] (img, cls, cx, cy, w, h) normalized.
+    `normalizer(target_scores)` divides the terms (default: their sum, at least 1); a
+    distributed caller passes the whole batch's."""
     bs, dev = feats[0].shape[0], feats[0].device
     x = torch.cat([f.flatten(2) for f in feats], 2).transpose(1, 2)  # [b, A, no]
     dist, logits = x.split((4 * reg_max, nc), -1)
@@ -106,7 +108,7 @@ def yolo_v8_loss(feats, targets, nc, reg_max, img_wh):
         gt_cls[img, slot] = t[:, 1]
         gt_mask[img, slot] = True
     t_boxes, t_scores, fg = assign(logits.detach().sigmoid(), boxes.detach() * strides, points * strides, gt_cls, gt_boxes, gt_mask, nc)
-    score_sum = t_scores.sum().clamp(min=1)
+    score_sum = normalizer(t_scores) if normalizer is not None else t_scores.sum().clamp(min=1)
     l_cls = F.binary_cross_entropy_with_logits(logits, t_scores, reduction="sum") / score_sum
     l_box = torch.zeros((), device=dev)
     l_dfl = torch.zeros((), device=dev)

@@ -75,6 +75,11 @@ pub struct Options {
     /// with it from 0.886x to 0.929x of the unpruned model's in the same 8000 steps (INT8
     /// on top: 0.869x to 0.900x); 16 gave 0.910x (0.886x). YOLOv5 heads do not read it.
     pub box_iou: f64,
+    /// Weight of YOLOv8's own detection loss (task-aligned assignment, CIoU and DFL on the
+    /// boxes, BCE on IoU-aware class targets) on the teacher's detections (score above 0.25,
+    /// after NMS), beside the distillation: it ranks each object's best-aligned cells first,
+    /// which is what NMS keeps and mAP reads. 0: off. YOLOv5 heads do not read it.
+    pub pseudo_labels: f64,
 }
 
 #[derive(serde::Deserialize, serde::Serialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -92,8 +97,8 @@ impl Options {
         if self.frames < self.schedule.batch {
             bail!("frames ({}) must be at least batch ({})", self.frames, self.schedule.batch);
         }
-        if ![self.box_edges, self.class_foreground, self.v5_box_edges, self.box_iou].iter().all(|w| *w >= 0.0 && w.is_finite()) {
-            bail!("box_edges, class_foreground, v5_box_edges and box_iou must be finite and 0 or more");
+        if ![self.box_edges, self.class_foreground, self.v5_box_edges, self.box_iou, self.pseudo_labels].iter().all(|w| *w >= 0.0 && w.is_finite()) {
+            bail!("box_edges, class_foreground, v5_box_edges, box_iou and pseudo_labels must be finite and 0 or more");
         }
         Ok(())
     }
@@ -101,7 +106,7 @@ impl Options {
 
 impl Default for Options {
     fn default() -> Self {
-        Options { schedule: Schedule::new(1000, 1e-3, 16), frames: 512, seed: 0, train: Train::All, box_edges: 16.0, class_foreground: 4.0, v5_box_edges: 16.0, box_iou: 64.0 }
+        Options { schedule: Schedule::new(1000, 1e-3, 16), frames: 512, seed: 0, train: Train::All, box_edges: 16.0, class_foreground: 4.0, v5_box_edges: 16.0, box_iou: 64.0, pseudo_labels: 0.0 }
     }
 }
 
@@ -149,7 +154,7 @@ impl Pass for Recover {
             Train::All => None,
             Train::Estimates => Some(present(model, &estimates)?),
         };
-        let opts = Training { schedule: o.schedule.clone(), seed: o.seed, window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground, v5_box_edges: o.v5_box_edges, box_iou: o.box_iou };
+        let opts = Training { schedule: o.schedule.clone(), seed: o.seed, window, trainable, box_edges: o.box_edges, class_foreground: o.class_foreground, v5_box_edges: o.v5_box_edges, box_iou: o.box_iou, pseudo_labels: o.pseudo_labels };
         let outcome = distill(&mut trained, &teacher, &kept, &train.iter().map(image).collect::<Vec<_>>(), &check.iter().map(image).collect::<Vec<_>>(), &opts)?;
         cx.record_training(&outcome);
         let after = reference.errors(&trained)?;
@@ -174,6 +179,7 @@ impl Pass for Recover {
             "class_foreground": o.class_foreground,
             "v5_box_edges": o.v5_box_edges,
             "box_iou": o.box_iou,
+            "pseudo_labels": o.pseudo_labels,
             "frames": train.len(),
             "held_out_frames": check.len(),
             "calibration": source,

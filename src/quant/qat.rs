@@ -31,7 +31,7 @@ pub const EDGE_WEIGHT: f64 = 1.0;
 /// (every weight of the whole frame), the box edges at `EDGE_WEIGHT`, and no class foreground
 /// term (QAT was measured without it; `recover`'s default is for pruned students).
 pub fn training(schedule: &Schedule, seed: u64) -> Training {
-    Training { schedule: schedule.clone(), seed, window: None, trainable: None, box_edges: EDGE_WEIGHT, class_foreground: 0.0, v5_box_edges: 0.0, box_iou: 0.0 }
+    Training { schedule: schedule.clone(), seed, window: None, trainable: None, box_edges: EDGE_WEIGHT, class_foreground: 0.0, v5_box_edges: 0.0, box_iou: 0.0, pseudo_labels: 0.0 }
 }
 
 pub struct Trained {

@@ -35,6 +35,9 @@ pub struct Training {
     /// expected distance, the boxes sharing their anchor point) beside the box edges (0:
     /// off); `train` puts it on every box head it is given.
     pub box_iou: f64,
+    /// Weight of YOLOv8's own loss on the teacher's detections (`pseudo.py`) beside the
+    /// distillation (0: off); heads other than YOLOv8's do not read it.
+    pub pseudo_labels: f64,
 }
 
 /// What one distillation did, from the worker's own account.
@@ -178,7 +181,7 @@ pub fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Tensor], 
     let mut config = serde_json::json!({
         "student": dir.join("student.onnx"), "teacher": dir.join("teacher.onnx"), "out": dir.join("trained.onnx"),
         "frames": dir.join("frames.npy"), "held_out": dir.join("held_out.npy"), "heads": job.heads, "features": job.features,
-        "window": o.window, "crop": crop, "trainable": o.trainable, "steps": s.steps, "warmup": s.warmup, "minutes": s.minutes, "threads": (s.threads() / s.devices.max(1)).max(1), "lr": s.lr, "batch": s.batch, "seed": o.seed, "cuda_graph": s.cuda_graph, "ema": s.ema,
+        "window": o.window, "crop": crop, "trainable": o.trainable, "steps": s.steps, "warmup": s.warmup, "minutes": s.minutes, "threads": (s.threads() / s.devices.max(1)).max(1), "lr": s.lr, "batch": s.batch, "seed": o.seed, "cuda_graph": s.cuda_graph, "ema": s.ema, "pseudo_labels": o.pseudo_labels,
         "device": if s.device.is_empty() { serde_json::Value::Null } else { s.device.clone().into() },
         "outputs_to": if job.outputs { serde_json::json!(outputs_to) } else { serde_json::Value::Null },
     });
@@ -297,7 +300,7 @@ mod tests {
 
     #[test]
     fn each_head_kind_gets_its_own_terms() {
-        let terms = |v5_box_edges, box_iou| Training { schedule: Schedule::new(1, 1e-3, 1), seed: 0, window: None, trainable: None, box_edges: 4.0, class_foreground: 2.0, v5_box_edges, box_iou };
+        let terms = |v5_box_edges, box_iou| Training { schedule: Schedule::new(1, 1e-3, 1), seed: 0, window: None, trainable: None, box_edges: 4.0, class_foreground: 2.0, v5_box_edges, box_iou, pseudo_labels: 0.0 };
         let mut heads = vec![serde_json::json!({"kind": "v8box"}), serde_json::json!({"kind": "v8cls"}), serde_json::json!({"kind": "v5"}), serde_json::json!({"kind": "v5scores"})];
         weigh_terms(&mut heads, &terms(0.0, 0.0));
         assert_eq!(heads[0]["edge_weight"], 4.0);

@@ -27,6 +27,7 @@ import torch.nn.functional as F
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from interpreter import Graph, cone  # noqa: E402
+import pseudo  # noqa: E402
 
 # torchrun's world: this process's rank and how many train together (1: no torchrun).
 RANK = int(os.environ.get("RANK", "0"))
@@ -122,7 +123,7 @@ def feature_loss(s, t, keep):
     return ((s - t) ** 2).mean() / batch_var(t).clamp(min=1e-6)
 
 
-def total_loss(ss, ts, heads, features=()):
+def total_loss(ss, ts, heads, features=(), pseudo_weight=0.0):
     n = len(heads)
     ts = [t[:, h["keep"]] if h.get("keep") is not None else t for t, h in zip(ts[:n], heads)] + list(ts[n:])
     total = sum(feature_loss(s, t, f["keep"]) for s, t, f in zip(ss[n:], ts[n:], features))
@@ -138,6 +139,10 @@ def total_loss(ss, ts, heads, features=()):
                 per = tt.view(tt.shape[0], sp["anchors"], sp["outputs"], *tt.shape[2:])
                 spec = dict(spec, objectness=torch.sigmoid(per[:, :, :1]))
         total = total + head_loss(s, t, spec)
+    if pseudo_weight:
+        det = pseudo.loss(ss, ts, heads, batch_total)
+        if det is not None:
+            total = total + pseudo_weight * det
     return total
 
 
@@ -278,6 +283,7 @@ def train(cfg):
     student = Graph(student_model, weight_qmax=cfg.get("weight_qmax", 127), pin_extremes=cfg.get("pin_extremes", False),
                     weight_qmin=cfg.get("weight_qmin"), only=only, scale_groups=cfg.get("scale_groups", ())).to_device(dev)
     heads, features = on_device(cfg["heads"], dev), on_device(cfg.get("features", []), dev)
+    pseudo_weight = cfg.get("pseudo_labels") or 0.0
     names = [h["value"] for h in heads] + [f["value"] for f in features]
     # The student's copy of a value where it differs (a quantized value's dequantized copy).
     student_names = [h.get("student_value") or h["value"] for h in heads] + [f["value"] for f in features]
@@ -308,13 +314,14 @@ def train(cfg):
             tot = 0.0
             for i in range(0, len(held), batch):
                 x = held[i:i + batch]
-                tot += float(total_loss(student(student_in(x), student_names), teacher(x, names), heads, features)) * len(x)
+                tot += float(total_loss(student(student_in(x), student_names), teacher(x, names), heads, features, pseudo_weight)) * len(x)
             return tot / len(held)
 
     groups = student.param_groups(cfg["lr"], cfg.get("relative_lr", False), cfg.get("scale_lr", 1.0))
     # On one GPU the step is captured as a CUDA graph (`Captured`): Adam then keeps its state
     # and learning rates on the device, and the schedule writes the rates in place.
-    graphed = dev.type == "cuda" and WORLD == 1 and cfg.get("cuda_graph", True)
+    # (Not with the teacher's detections as labels: their count changes from step to step.)
+    graphed = dev.type == "cuda" and WORLD == 1 and cfg.get("cuda_graph", True) and not pseudo_weight
     if graphed:
         for g in groups:
             g["lr"] = torch.tensor(g["lr"], device=dev)
@@ -330,7 +337,7 @@ def train(cfg):
     def train_step(x):
         with torch.no_grad():
             t = teacher(x, names)
-        loss = total_loss(model(student_in(x), student_names), t, heads, features)
+        loss = total_loss(model(student_in(x), student_names), t, heads, features, pseudo_weight)
         opt.zero_grad()
         loss.backward()
         opt.step()

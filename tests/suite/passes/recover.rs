@@ -74,6 +74,78 @@ fn features_reach_back_to_where_yolov8_branches_start() {
     }
 }
 
+/// What the worker labels a student with (`pseudo.py`) is the detector's own output: on the
+/// compiled v8, the teacher's detections from its head convolutions are `run`'s (the same
+/// classes, boxes within 0.01 px) at the worker's score threshold and NMS IoU; and YOLOv8's
+/// loss against them is lower for the teacher than for the teacher with its box logits
+/// disturbed.
+#[test]
+fn the_teacher_labels_its_student_with_its_own_detections() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("v8");
+    compile("models/trained/pdinet_v8_w0.25_trained.onnx", "passes/detect-f32.yaml", &out);
+    let model = out.join("model.onnx");
+    let heads = pdi_compile::torch::heads::head_specs(&load(&model)).unwrap();
+    let frames: Vec<_> = pdi_compile::deploy::image::list(&eval_frames(dir.path(), 4)).unwrap();
+    let work = dir.path().join("work");
+    for (name, source) in pdi_compile::torch::SCRIPTS {
+        let path = work.join(name);
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        std::fs::write(path, source).unwrap();
+    }
+    let config = serde_json::json!({"model": model, "heads": heads, "frames": frames});
+    std::fs::write(work.join("config.json"), config.to_string()).unwrap();
+    let script = r#"
+import json, sys
+import numpy as np, onnx, torch
+from PIL import Image
+import pseudo
+from interpreter import Graph
+cfg = json.load(open("config.json"))
+heads = cfg["heads"]
+g = Graph(onnx.load(cfg["model"]), trainable=False).eval()
+x = torch.from_numpy(np.stack([np.asarray(Image.open(f), dtype=np.float32)[None] / 65535.0 for f in cfg["frames"]]))
+with torch.no_grad():
+    ts = g(x, [h["value"] for h in heads])
+pairs = pseudo.levels(ts, heads)
+nc, reg_max = ts[pairs[0][1]].shape[1], heads[pairs[0][0]]["reg_max"]
+found, size = pseudo.labels(pseudo.per_level(ts, pairs), nc, reg_max)
+norm = lambda t: t.sum().clamp(min=1)
+disturbed = [t + 0.5 * torch.randn(t.shape, generator=torch.Generator().manual_seed(0)) if h["kind"] == "v8box" else t for t, h in zip(ts, heads)]
+print(json.dumps({"labels": found.tolist(), "size": size, "own": float(pseudo.loss(ts, ts, heads, norm)), "disturbed": float(pseudo.loss(disturbed, ts, heads, norm))}))
+"#;
+    std::fs::write(work.join("check.py"), script).unwrap();
+    let run = std::process::Command::new(pdi_compile::pyenv::torch_python().unwrap()).current_dir(&work).arg("check.py").output().unwrap();
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let got: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    println!("{got}");
+    let (w, h) = (got["size"][0].as_f64().unwrap(), got["size"][1].as_f64().unwrap());
+    assert_eq!((w, h), (256.0, 192.0));
+    let labels: Vec<Vec<f64>> = serde_json::from_value(got["labels"].clone()).unwrap();
+    let opts = pdi_compile::deploy::Options { conf: Some(0.25), iou: Some(0.7), ..Default::default() };
+    let mut detector = pdi_compile::deploy::Detector::load_with(&model, &opts).unwrap();
+    let mut total = 0;
+    for (i, f) in frames.iter().enumerate() {
+        let mut want = detector.detect(&pdi_compile::deploy::image::Image::read(f).unwrap()).unwrap();
+        let mut have: Vec<&Vec<f64>> = labels.iter().filter(|l| l[0] == i as f64).collect();
+        assert_eq!(have.len(), want.len(), "frame {i}: {have:?} against {want:?}");
+        // Both lists in one order: by class, then left edge.
+        want.sort_by(|a, b| (a.class, a.bbox[0]).partial_cmp(&(b.class, b.bbox[0])).unwrap());
+        have.sort_by(|a, b| (a[1], a[2] - a[4] / 2.0).partial_cmp(&(b[1], b[2] - b[4] / 2.0)).unwrap());
+        for (l, d) in have.iter().zip(&want) {
+            let corners = [(l[2] - l[4] / 2.0) * w, (l[3] - l[5] / 2.0) * h, (l[2] + l[4] / 2.0) * w, (l[3] + l[5] / 2.0) * h];
+            assert_eq!(l[1] as usize, d.class, "frame {i}");
+            for (a, b) in corners.iter().zip(d.bbox) {
+                assert!((a - b as f64).abs() < 0.01, "frame {i}: {corners:?} against {:?}", d.bbox);
+            }
+        }
+        total += want.len();
+    }
+    assert!(total >= 4, "the frames hold objects the teacher finds ({total})");
+    let (own, disturbed) = (got["own"].as_f64().unwrap(), got["disturbed"].as_f64().unwrap());
+    assert!(own.is_finite() && own < disturbed, "the teacher fits its own labels best: {own} against {disturbed}");
+}
+
 /// A short recovery of the pruned tiny model: held-out agreement with the unpruned model gets
 /// better, the node list stays exactly what `prune` left.
 #[test]
@@ -122,8 +194,8 @@ fn recover_needs_a_prune_pass() {
 #[test]
 fn impossible_recover_settings_are_refused() {
     let dir = tempfile::tempdir().unwrap();
-    let weights = "box_edges, class_foreground, v5_box_edges and box_iou must be finite and 0 or more";
-    for (setting, needle) in [("box_edges: -1", weights), ("v5_box_edges: -0.5", weights), ("box_edges: .inf", weights), ("class_foreground: -2", weights), ("class_foreground: .nan", weights), ("box_iou: -1", weights), ("lr: .nan", "lr must be a positive number"), ("batch: 0", "steps and batch must be at least 1"), ("devices: 0", "devices must be 1 to 64"), ("{devices: 3, batch: 8}", "batch (8) must divide among the devices (3)")] {
+    let weights = "box_edges, class_foreground, v5_box_edges, box_iou and pseudo_labels must be finite and 0 or more";
+    for (setting, needle) in [("box_edges: -1", weights), ("v5_box_edges: -0.5", weights), ("box_edges: .inf", weights), ("class_foreground: -2", weights), ("class_foreground: .nan", weights), ("box_iou: -1", weights), ("pseudo_labels: .nan", weights), ("lr: .nan", "lr must be a positive number"), ("batch: 0", "steps and batch must be at least 1"), ("devices: 0", "devices must be 1 to 64"), ("{devices: 3, batch: 8}", "batch (8) must divide among the devices (3)")] {
         let recipe = dir.path().join("r.yaml");
         let setting = setting.trim_start_matches('{').trim_end_matches('}');
         std::fs::write(&recipe, format!("name: r\npasses: [{LOSSLESS}, {{prune: {{ratio: 0.5, compensate: none}}}}, {{recover: {{{setting}}}}}, cleanup]\n")).unwrap();
