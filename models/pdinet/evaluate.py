@@ -7,6 +7,9 @@ in numpy apart from the Rust code, it is what the test suite checks `run`'s dete
 The head comes from the model's `pdinet.head` metadata.
 
   python pdinet/evaluate.py --model trained/pdinet_v5_tiny_trained.onnx --data out/pdi-eval-256/degraded --psf ../calib/single_lwir_blur.npy
+
+`--breakdown` adds mAP at each IoU threshold and by object size: where a compiled model's
+mAP@0.5:0.95 goes.
 """
 import argparse
 import json
@@ -19,7 +22,7 @@ from PIL import Image
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from pdinet.postprocess import candidates, nms_numpy  # noqa: E402
-from pdinet.coco import coco_entries, coco_map  # noqa: E402
+from pdinet.coco import coco_breakdown, coco_entries, coco_map  # noqa: E402
 
 
 def main():
@@ -29,6 +32,7 @@ def main():
     ap.add_argument("--psf", help="blur map .npy for models that take psf_blur as an input")
     ap.add_argument("--iou", type=float, help="NMS IoU (default: 0.7 for YOLOv8, 0.6 for YOLOv5)")
     ap.add_argument("--detections", help="also write the detections here (COCO results, xywh, with file_name)")
+    ap.add_argument("--breakdown", action="store_true", help="also mAP at each IoU threshold and by object size")
     a = ap.parse_args()
     s = ort.InferenceSession(a.model, providers=["CPUExecutionProvider"])
     head = s.get_modelmeta().custom_metadata_map.get("pdinet.head", "v5")
@@ -55,7 +59,10 @@ def main():
     if a.detections:
         with open(a.detections, "w") as out:
             json.dump(dets, out)
-    print(json.dumps({"model": os.path.basename(a.model), "head": head, "iou": iou, "frames": len(files), "objects": len(anns), "map50": round(m50, 4), "map50_95": round(m5095, 4)}))
+    report = {"model": os.path.basename(a.model), "head": head, "iou": iou, "frames": len(files), "objects": len(anns), "map50": round(m50, 4), "map50_95": round(m5095, 4)}
+    if a.breakdown:
+        report.update(coco_breakdown(images, anns, dets))
+    print(json.dumps(report))
 
 if __name__ == "__main__":
     main()
