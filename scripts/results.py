@@ -425,13 +425,18 @@ def averaged(model, decay=0.999):
     return experiment
 
 
-def baseline(model):
-    """The shipped `detect-pruned-f32` record on `model`, the row a direction is read against."""
-    base = previous(f"pruned-{slug(model)}")
-    return None if not base else {
-        "commit": base["commit"], "map_f32": base["figures"]["map_f32"], "kept_f32": base["figures"]["kept_f32"],
-        "map_int8": base["figures"]["map_int8"], "kept_int8": base["figures"]["kept_int8"],
-        "held_out_loss_after": base["figures"]["recover"]["held_out_loss_after"]}
+def baseline(model, key=""):
+    """The shipped `detect-pruned-f32` record on `model`, the row a direction is read against;
+    for a direction on recovery's seed 1, the shipped recipe's record with that seed."""
+    name = f"seed1-{slug(model)}" if key.endswith("-seed1") else f"pruned-{slug(model)}"
+    base = previous(name)
+    if not base:
+        return None
+    rec = base["figures"]["recover"]
+    return {"commit": base["commit"], "map_f32": base["figures"]["map_f32"], "kept_f32": base["figures"]["kept_f32"],
+            "map_int8": base["figures"]["map_int8"], "kept_int8": base["figures"]["kept_int8"],
+            "held_out_loss_after": (rec[-1] if isinstance(rec, list) else rec)["held_out_loss_after"]} \
+        | ({"name": name} if key.endswith("-seed1") else {})
 
 
 # Directions towards a pruned detector closer to the unpruned one: (key, what changes, the
@@ -484,13 +489,18 @@ DIRECTIONS = {
                       "channels instead of 16: the unpruned v8's boxes sit within a third of a pixel at IoU 0.95, "
                       "where the pruned ones lose most",
                       lambda ctx, text, path: allocation_with(ctx, text, path, {STRIDE8_BOX: 0.5})),
+    "box-branch-32-seed1": ("the box-branch-32 direction with recovery's seed 1 instead of 0",
+                            lambda ctx, text, path: allocation_with(ctx, text, path, {STRIDE8_BOX: 0.5}, SEED1)),
+    "pseudo-labels-seed1": ("the pseudo-labels direction with recovery's seed 1 instead of 0",
+                            PRUNE + RECOVER.replace("}\n", ", pseudo_labels: 4, seed: 1}\n")),
     "one-allocation": ("two cuts along one allocation: the shipped allocation to 28% of the MACs, measured once on "
                        "the unpruned model; each group keeps the square root of its final share, 3000 steps of "
                        "recovery, then the same ratios again, 5000 steps",
                        lambda ctx, text, path: two_cuts(halfway(ctx, text, path))),
 }
 # The heads a direction changes anything on (the rest: both).
-ONLY = {"frames8192": ("v8 w0.25",), "seed1": ("v8 w0.25",), "v5-edges": ("v5 w0.25",), "box-iou": ("v8 w0.25",), "box-iou-64": ("v8 w0.25",), "box-iou-256": ("v8 w0.25",), "pseudo-labels": ("v8 w0.25",), "box-branch-32": ("v8 w0.25",)}
+ONLY = {"frames8192": ("v8 w0.25",), "seed1": ("v8 w0.25",), "v5-edges": ("v5 w0.25",), "box-iou": ("v8 w0.25",), "box-iou-64": ("v8 w0.25",), "box-iou-256": ("v8 w0.25",), "pseudo-labels": ("v8 w0.25",), "box-branch-32": ("v8 w0.25",),
+        "box-branch-32-seed1": ("v8 w0.25",), "pseudo-labels-seed1": ("v8 w0.25",)}
 
 
 def halfway(ctx, text, path):
@@ -507,9 +517,13 @@ def halfway(ctx, text, path):
 STRIDE8_BOX = "/detect/cv2.0/cv2.0.0/conv/Conv_output_0"
 
 
-def allocation_with(ctx, text, path, changed):
+# The recipe's recover pass with recovery's seed 1.
+SEED1 = RECOVER.replace("}\n", ", seed: 1}\n")
+
+
+def allocation_with(ctx, text, path, changed, recover=RECOVER):
     """A prune pass giving the shipped allocation (measured by the recipe's prune pass alone)
-    outright, with the groups in `changed` at their given ratios."""
+    outright, with the groups in `changed` at their given ratios, and `recover` after it."""
     alone = ctx.dir / "allocation.yaml"
     alone.write_text(text.replace(PRUNE + RECOVER, PRUNE))
     groups = pass_of(compile_(ctx, path, alone, ctx.dir / "allocation"), "prune")["details"]["sensitivity"]["groups"]
@@ -517,7 +531,7 @@ def allocation_with(ctx, text, path, changed):
     if any(a not in {g["anchor"] for g in groups} for a in changed):
         raise Failed(f"no pruning group {sorted(changed)} in the allocation")
     ratios = ", ".join(f'"{a}": {r:.6f}' for a, r in sorted((chosen | changed).items()) if r > 0)
-    return PRUNE.replace("target: {macs: 0.28}", f"ratios: {{{ratios}}}") + RECOVER
+    return PRUNE.replace("target: {macs: 0.28}", f"ratios: {{{ratios}}}") + recover
 
 
 def two_cuts(cut):
@@ -547,7 +561,7 @@ def direction(model, key):
             "recover": [{k: r["details"]["training"].get(k) for k in ("steps", "seconds", "frames_per_second", "held_out_loss_before", "held_out_loss_after")}
                         | {"kept": r["details"]["kept"]} for r in recs],
             "compile_seconds": rep["millis"] / 1000, "int8_seconds": q["millis"] / 1000,
-            "baseline": baseline(model),
+            "baseline": baseline(model, key),
         }
     return experiment
 

@@ -265,7 +265,8 @@ def direction(f):
     b, rs = f["baseline"], f["recover"]
     steps = " + ".join(f"{r['steps']}" for r in rs)
     secs = sum(r["seconds"] for r in rs)
-    rows = [["the shipped recipe's record" + (f" (commit {b['commit'][:10]})" if b else ""),
+    what = f"record `{b['name']}`" if b and b.get("name") else "the shipped recipe's record"
+    rows = [[what + (f" (commit {b['commit'][:10]})" if b else ""),
              "-" if not b else f"{f4(b['map_f32'])} ({b['kept_f32']:.3f}×)", "-" if not b else f"{f4(b['map_int8'])} ({b['kept_int8']:.3f}×)"],
             [f"{f['direction']} ({f['macs_ratio']:.3f}× MACs)", f"{f4(f['map_f32'])} ({f['kept_f32']:.3f}×)", f"{f4(f['map_int8'])} ({f['kept_int8']:.3f}×)"]]
     gain = "" if not b else f" Against the record: f32 {f['kept_f32'] - b['kept_f32']:+.3f}, INT8 {f['kept_int8'] - b['kept_int8']:+.3f} of the original's mAP."
