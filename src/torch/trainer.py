@@ -2,7 +2,8 @@
 run in the cache's torch venv. The student (an ONNX graph run by `interpreter.py`) learns to
 match the teacher's head convolutions (the logits before the decode) on unlabelled frames,
 freshly augmented each batch, and the trained initializers go back into the student ONNX file
-unchanged in shape.
+unchanged in shape. With `pseudo_labels` a YOLOv8 student also learns the teacher's detections
+through the detector's own loss (`pseudo.py`).
 
   python trainer.py train CONFIG.json   # progress as JSON lines on stdout
 
