@@ -503,12 +503,18 @@ ONLY = {"frames8192": ("v8 w0.25",), "seed1": ("v8 w0.25",), "v5-edges": ("v5 w0
         "box-branch-32-seed1": ("v8 w0.25",), "pseudo-labels-seed1": ("v8 w0.25",)}
 
 
+def shipped_groups(ctx, text, path):
+    """The sensitivity groups of `path` and the share of each the shipped allocation chooses,
+    measured by the recipe's prune pass alone."""
+    alone = ctx.dir / "allocation.yaml"
+    alone.write_text(text.replace(PRUNE + RECOVER, PRUNE))
+    return pass_of(compile_(ctx, path, alone, ctx.dir / "allocation"), "prune")["details"]["sensitivity"]["groups"]
+
+
 def halfway(ctx, text, path):
     """A prune pass cutting each group of `path` halfway, in the keep fraction, to the share the
     shipped allocation chooses for it (measured by the recipe's prune pass alone)."""
-    alone = ctx.dir / "allocation.yaml"
-    alone.write_text(text.replace(PRUNE + RECOVER, PRUNE))
-    groups = pass_of(compile_(ctx, path, alone, ctx.dir / "allocation"), "prune")["details"]["sensitivity"]["groups"]
+    groups = shipped_groups(ctx, text, path)
     ratios = ", ".join(f'"{g["anchor"]}": {1 - (1 - g["chosen"]) ** 0.5:.6f}' for g in groups if g["chosen"] > 0)
     return PRUNE.replace("target: {macs: 0.28}", f"ratios: {{{ratios}}}")
 
@@ -524,9 +530,7 @@ SEED1 = RECOVER.replace("}\n", ", seed: 1}\n")
 def allocation_with(ctx, text, path, changed, recover=RECOVER):
     """A prune pass giving the shipped allocation (measured by the recipe's prune pass alone)
     outright, with the groups in `changed` at their given ratios, and `recover` after it."""
-    alone = ctx.dir / "allocation.yaml"
-    alone.write_text(text.replace(PRUNE + RECOVER, PRUNE))
-    groups = pass_of(compile_(ctx, path, alone, ctx.dir / "allocation"), "prune")["details"]["sensitivity"]["groups"]
+    groups = shipped_groups(ctx, text, path)
     chosen = {g["anchor"]: g["chosen"] for g in groups if g["chosen"] > 0}
     if any(a not in {g["anchor"] for g in groups} for a in changed):
         raise Failed(f"no pruning group {sorted(changed)} in the allocation")

@@ -31,9 +31,8 @@ pub const SCRIPTS: &[(&str, &str)] = &[
     ("pdinet/model.py", include_str!("../../models/pdinet/model.py")),
 ];
 
-/// Writes the scripts into `dir` and runs `script` with `args` as `ranks` processes (see
-/// `pyenv::run_worker`): its `done` event, after `on_event` saw the others.
-pub fn run(dir: &Path, script: &str, args: &[&OsStr], ranks: usize, on_event: impl FnMut(&serde_json::Value)) -> Result<serde_json::Value> {
+/// Writes the scripts into `dir`, where they import each other.
+pub fn write_scripts(dir: &Path) -> Result<()> {
     for (name, source) in SCRIPTS {
         let path = dir.join(name);
         if let Some(parent) = path.parent() {
@@ -41,5 +40,12 @@ pub fn run(dir: &Path, script: &str, args: &[&OsStr], ranks: usize, on_event: im
         }
         std::fs::write(path, source)?;
     }
+    Ok(())
+}
+
+/// Writes the scripts into `dir` and runs `script` with `args` as `ranks` processes (see
+/// `pyenv::run_worker`): its `done` event, after `on_event` saw the others.
+pub fn run(dir: &Path, script: &str, args: &[&OsStr], ranks: usize, on_event: impl FnMut(&serde_json::Value)) -> Result<serde_json::Value> {
+    write_scripts(dir)?;
     crate::pyenv::run_worker(dir, script, args, ranks, on_event)
 }

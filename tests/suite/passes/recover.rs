@@ -88,11 +88,7 @@ fn the_teacher_labels_its_student_with_its_own_detections() {
     let heads = pdi_compile::torch::heads::head_specs(&load(&model)).unwrap();
     let frames: Vec<_> = pdi_compile::deploy::image::list(&eval_frames(dir.path(), 4)).unwrap();
     let work = dir.path().join("work");
-    for (name, source) in pdi_compile::torch::SCRIPTS {
-        let path = work.join(name);
-        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
-        std::fs::write(path, source).unwrap();
-    }
+    pdi_compile::torch::write_scripts(&work).unwrap();
     let config = serde_json::json!({"model": model, "heads": heads, "frames": frames});
     std::fs::write(work.join("config.json"), config.to_string()).unwrap();
     let script = r#"
