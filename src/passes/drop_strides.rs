@@ -22,16 +22,12 @@
 
 use crate::analysis::channels::detector_convolutions;
 use crate::analysis::head::{self, HeadKind};
-use crate::calib_frames::image_feeds;
-use crate::detect::{decode, nms::nms, Detection};
 use crate::ir::{infer, Graph};
 use crate::onnx::proto::ModelProto;
 use crate::onnx::tensor_proto::to_tensor;
 use super::{Pass, PassContext};
-use crate::runtime::{ort_runtime::OrtRuntime, Runtime};
-use crate::scene::geometry::{self, Cut, Level};
-use crate::scene::{Roi, SceneMeta};
-use crate::tensor::Tensor;
+use crate::scene::geometry::{self, Level};
+use crate::scene::levels::{detection_shares, drop_levels, Measure};
 use anyhow::{anyhow, bail, Result};
 
 #[derive(serde::Serialize, serde::Deserialize)]
@@ -77,7 +73,7 @@ impl Pass for DropStrides {
         };
         let [lo, hi] = scene.object_px.expect("checked");
         let g = super::graph_mut(model)?;
-        let (_, [h, w], levels) = geometry::levels(g)?;
+        let (_, _, levels) = geometry::levels(g)?;
         let (head, rules) = {
             let graph = Graph::build(g)?;
             let inf = infer(&graph);
@@ -91,8 +87,8 @@ impl Pass for DropStrides {
             (head, rules)
         };
         let shares = if self.options.measure {
-            let threshold = scene.score_threshold.unwrap_or(DEFAULT_SCORE);
-            Some(measure(model, cx, &head, &levels, [lo, hi], threshold, &self.options)?)
+            let m = Measure { calib: cx.calib.as_deref(), frames: self.options.frames, seed: self.options.seed, size: [lo, hi], score: scene.score_threshold.unwrap_or(DEFAULT_SCORE) };
+            Some(detection_shares(model, &head, &levels, &m)?)
         } else {
             None
         };
@@ -117,12 +113,7 @@ impl Pass for DropStrides {
                 })
             })
             .collect();
-        let mut meta = SceneMeta::begin(model)?;
-        let cut = geometry::apply(super::graph_mut(model)?, &Cut { window: Roi { x: 0, y: 0, w, h }, keep: keep.clone() })?;
-        meta.object_px = Some([lo, hi]);
-        meta.strides = Some(levels.iter().zip(&keep).filter(|(_, &k)| k).map(|(l, _)| l.stride).collect());
-        meta.write(model)?;
-        crate::scene::set_metadata(model, "stride", &format!("{:?}", meta.strides.as_ref().expect("set")));
+        let cut = drop_levels(model, &keep, Some([lo, hi]))?;
         Ok(serde_json::json!({
             "object_px": [lo, hi],
             "levels": report_levels,
@@ -182,59 +173,4 @@ fn v5_rule(anchors: &[[f32; 2]], lo: f32, hi: f32, t: f32) -> (bool, String) {
 fn v8_rule(l: &Level, reg_max: usize, lo: f32) -> (bool, String) {
     let max = 2.0 * (reg_max as f32 - 1.0) * l.stride as f32;
     (lo <= max, format!("sides up to {max:.0} px (2 × {} bins × stride {})", reg_max - 1, l.stride))
-}
-
-/// Each level's share of the final detections whose larger side lies in `[lo, hi]`.
-fn measure(model: &ModelProto, cx: &PassContext, head: &head::Head, levels: &[Level], [lo, hi]: [f32; 2], threshold: f32, o: &Options) -> Result<(Vec<f64>, String)> {
-    let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
-    let (feeds, source) = {
-        let graph = Graph::build(g)?;
-        image_feeds(&graph, &infer(&graph), cx.calib.as_deref(), o.frames, o.seed)?
-    };
-    let output = head.output.clone().ok_or_else(|| anyhow!("the detection output has no static 3-D shape"))?;
-    let mut rt = OrtRuntime::new(model)?;
-    let iou = if head.kind == HeadKind::Yolov8Dfl { 0.7 } else { 0.6 };
-    let mut counts = vec![0usize; levels.len()];
-    for f in &feeds {
-        let outs = rt.run(f)?;
-        let t = &outs.iter().find(|(n, _)| *n == output).ok_or_else(|| anyhow!("output '{output}' missing"))?.1;
-        // Candidates tagged by level through their rank in the output, then one NMS over all.
-        let per_level = split_levels(head.kind, t, levels)?;
-        let mut all: Vec<(Detection, usize)> = Vec::new();
-        for (li, part) in per_level.iter().enumerate() {
-            all.extend(decode::candidates(head.kind, part, threshold)?.into_iter().map(|d| (d, li)));
-        }
-        let kept = nms(all.iter().map(|p| p.0).collect(), iou, 300);
-        for d in kept {
-            let side = (d.bbox[2] - d.bbox[0]).max(d.bbox[3] - d.bbox[1]);
-            if side >= lo && side <= hi {
-                if let Some((_, li)) = all.iter().find(|(c, _)| *c == d) {
-                    counts[*li] += 1;
-                }
-            }
-        }
-    }
-    let total = counts.iter().sum::<usize>().max(1) as f64;
-    Ok((counts.iter().map(|&c| c as f64 / total).collect(), format!("{source}; {} in-range detections", counts.iter().sum::<usize>())))
-}
-
-/// The decoded output cut into its levels' candidates.
-fn split_levels(kind: HeadKind, t: &Tensor, levels: &[Level]) -> Result<Vec<Tensor>> {
-    let cells: usize = levels.iter().map(|l| l.height * l.width).sum();
-    let axis = if kind == HeadKind::Yolov5Anchor { 1 } else { 2 };
-    let n = *t.shape.get(axis).ok_or_else(|| anyhow!("detection output has shape {:?}", t.shape))?;
-    if n % cells != 0 {
-        bail!("detection output has {n} candidates; the levels have {cells} cells");
-    }
-    let k = n / cells;
-    let mut at = 0;
-    levels
-        .iter()
-        .map(|l| {
-            let m = k * l.height * l.width;
-            let idx: Vec<usize> = (at..at + m).collect();
-            at += m;
-            t.select(axis, &idx).ok_or_else(|| anyhow!("cannot split the detection output"))
-        })
-        .collect()
 }

@@ -5,6 +5,9 @@
 //! passes first: bind-psf, fold-constants, fold-bn). Calibration frames come from
 //! `--calib`, or from the physics pipeline when none is given (activation importance and
 //! compensation use them; magnitude importance without compensation needs none).
+//! With `unused_levels`, detection levels that hold (almost) none of the model's detections
+//! on calibration frames go first, as `drop-strides` removes them for a scene, and the
+//! budget still counts from the model with every level.
 //! Guarantees: outputs keep their names and shapes; the image input, the detection head's
 //! output convolutions, graph outputs and `ignore` keep every channel; a group the channel
 //! analysis cannot see through is left whole and named, never pruned wrongly; compensation
@@ -30,6 +33,7 @@ use crate::prune::sensitivity::{allocate as allocate_ratios, Budget, GroupSensit
 use crate::prune::{apply, select, Scope, SelectOptions};
 use crate::runtime::ort_runtime::OrtRuntime;
 use crate::runtime::Runtime;
+use crate::scene::levels::{detection_shares, drop_levels, Measure};
 use crate::tensor::Tensor;
 use anyhow::{anyhow, bail, Result};
 use std::collections::HashMap;
@@ -68,6 +72,14 @@ pub struct Options {
     /// instead of `ratio` or `target`: what `rebuild` puts in place of a latency target, the
     /// ratios the timed build chose, so that the rebuild does not time again.
     pub ratios: Option<std::collections::BTreeMap<String, f64>>,
+    /// Detection levels (strides) holding at most this share of the model's detections on
+    /// calibration frames (score 0.25 and above, after one NMS over all levels, any size) go
+    /// before any channel, with the neck and head nodes only they feed. A YOLOv8 trained on
+    /// small objects can assign every object to its finest level; its coarser levels then
+    /// cost MACs and budget for nothing. A MAC or latency target still counts from the model
+    /// with all its levels, so what they cost is spent on the levels that detect. None: every
+    /// level stays.
+    pub unused_levels: Option<f64>,
 }
 
 /// What sensitivity-guided pruning must reach, as a fraction of the unpruned model: one of
@@ -83,7 +95,7 @@ pub struct Target {
 
 impl Default for Options {
     fn default() -> Self {
-        Options { ratio: 0.5, importance: Criterion::L1, scope: Scope::Uniform, round_to: 8, compensate: Mode::Lstsq, calib_frames: 12, ridge: 1e-3, ignore: Vec::new(), seed: 0, target: None, sensitivity_frames: 4, ratios: None }
+        Options { ratio: 0.5, importance: Criterion::L1, scope: Scope::Uniform, round_to: 8, compensate: Mode::Lstsq, calib_frames: 12, ridge: 1e-3, ignore: Vec::new(), seed: 0, target: None, sensitivity_frames: 4, ratios: None, unused_levels: None }
     }
 }
 
@@ -96,6 +108,11 @@ pub struct Prune {
 const MAX_REGRESSION_POSITIONS: usize = 8192;
 /// Pixels of calibration frames compensation fits on (4 frames at 640x480, 21 at 256x192).
 const COMPENSATION_PIXELS: usize = 1 << 20;
+/// Calibration frames the levels' shares are measured on (`drop-strides`' default: 128
+/// synthetic frames at 256x192 hold over a hundred detections).
+const LEVEL_FRAMES: usize = 128;
+/// Score at which a detection counts in that measurement (YOLO's deployment default).
+const LEVEL_SCORE: f32 = 0.25;
 
 impl Pass for Prune {
     fn name(&self) -> &'static str {
@@ -117,6 +134,9 @@ impl Pass for Prune {
         if o.target.is_some() && o.ratios.is_some() {
             bail!("prune takes a target or ratios, not both");
         }
+        if let Some(s) = o.unused_levels.filter(|s| !(0.0..1.0).contains(s)) {
+            bail!("prune unused_levels {s} must be a share in [0, 1) of the model's detections");
+        }
         match o.target {
             Some(Target { macs: Some(f), latency: None }) | Some(Target { macs: None, latency: Some(f) }) if !(f > 0.0 && f <= 1.0) => bail!("prune target {f} must be a fraction in (0, 1] of the unpruned model"),
             Some(Target { macs: Some(_), latency: Some(_) }) | Some(Target { macs: None, latency: None }) => bail!("prune target: give exactly one of macs or latency (a fraction of the unpruned model), e.g. target: {{macs: 0.3}}"),
@@ -127,6 +147,13 @@ impl Pass for Prune {
     fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
         let mut clock = Clock::default();
+        // What a target counts from: the model with all its levels.
+        let whole = model.clone();
+        let levels = match o.unused_levels {
+            Some(share) => Some(drop_unused_levels(model, cx, share, o.seed)?),
+            None => None,
+        };
+        clock.lap("levels");
         let original = model.clone();
         let g = original.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
         let graph = Graph::build(g)?;
@@ -156,7 +183,7 @@ impl Pass for Prune {
             (None, None) => (None, None),
             (Some(target), None) => {
                 let feeds = feeds.get(..o.sensitivity_frames.min(feeds.len())).filter(|f| !f.is_empty()).ok_or_else(|| anyhow!("a pruning target needs calibration frames: {source}"))?;
-                let (ratios, report) = allocate(&original, &analysis, &scores, o, opset, target, feeds)?;
+                let (ratios, report) = allocate(&whole, &original, &analysis, &scores, o, opset, target, feeds)?;
                 if report["met"] == false {
                     cx.warn(format!("the target {target:?} is out of reach with ratios up to {}; pruned as far as the levels go", LEVELS[LEVELS.len() - 1]));
                 }
@@ -207,12 +234,13 @@ impl Pass for Prune {
             }
         }
         clock.lap("held_out_check");
-        let (before, after) = (counts(&original)?, counts(model)?);
+        let (before, after) = (counts(&whole)?, counts(model)?);
         let pruned_groups = plan.groups.iter().filter(|p| p.after < p.before).count();
         Ok(serde_json::json!({
             "ratio": if o.target.is_some() { serde_json::Value::Null } else { o.ratio.into() },
             "target": o.target,
             "sensitivity": sensitivity,
+            "unused_levels": levels,
             "importance": o.importance,
             "importance_fallback_classes": fallback,
             "scope": o.scope,
@@ -234,9 +262,40 @@ impl Pass for Prune {
     }
 }
 
+/// Removes the detection levels holding at most `max_share` of the model's detections on
+/// calibration frames; says each level's share. A model without a decode the measurement
+/// reads keeps every level, with a warning.
+fn drop_unused_levels(model: &mut ModelProto, cx: &mut PassContext, max_share: f64, seed: u64) -> Result<serde_json::Value> {
+    let g = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
+    let head = {
+        let graph = Graph::build(g)?;
+        let outputs: Vec<String> = g.output.iter().map(|o| o.name.clone()).collect();
+        crate::analysis::head::detect(&graph, &infer(&graph), &outputs)
+    };
+    if head.kind == crate::analysis::head::HeadKind::Raw || head.output.is_none() {
+        cx.warn("unused_levels: the model has no YOLOv5 or YOLOv8 decode to count detections by; every level kept");
+        return Ok(serde_json::json!({ "skipped": "no decoded detection output" }));
+    }
+    let (_, _, levels) = crate::scene::geometry::levels(g)?;
+    let m = Measure { calib: cx.calib.as_deref(), frames: LEVEL_FRAMES, seed, size: [0.0, f32::INFINITY], score: LEVEL_SCORE };
+    let (shares, source) = detection_shares(model, &head, &levels, &m)?;
+    // No detection at all says nothing about the levels: all shares are 0 then.
+    let keep: Vec<bool> = if shares.iter().all(|&s| s == 0.0) { vec![true; levels.len()] } else { shares.iter().map(|&s| s > max_share).collect() };
+    if keep.iter().any(|&k| !k) {
+        drop_levels(model, &keep, None)?;
+    }
+    Ok(serde_json::json!({
+        "max_share": max_share,
+        "measured_on": source,
+        "levels": levels.iter().zip(&shares).zip(&keep).map(|((l, s), k)| serde_json::json!({ "stride": l.stride, "share": s, "kept": k })).collect::<Vec<_>>(),
+    }))
+}
+
 /// Sensitivity of every prunable group at each level, then the per-group ratios meeting
-/// `target` with the least predicted damage (see `prune::sensitivity`).
-fn allocate(original: &ModelProto, analysis: &crate::analysis::channels::ChannelAnalysis, scores: &[f64], o: &Options, opset: i64, target: Target, feeds: &[Vec<(String, Tensor)>]) -> Result<(HashMap<String, f64>, serde_json::Value)> {
+/// `target` with the least predicted damage (see `prune::sensitivity`). The target counts
+/// from `whole`, the model before its unused levels went (`original` otherwise).
+#[allow(clippy::too_many_arguments)]
+fn allocate(whole: &ModelProto, original: &ModelProto, analysis: &crate::analysis::channels::ChannelAnalysis, scores: &[f64], o: &Options, opset: i64, target: Target, feeds: &[Vec<(String, Tensor)>]) -> Result<(HashMap<String, f64>, serde_json::Value)> {
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let pruned = |ratios: &HashMap<String, f64>| -> Result<(ModelProto, crate::prune::Plan)> {
         let plan = select(analysis, scores, &SelectOptions { ratio: 0.0, round_to: o.round_to, scope: o.scope, per_group: Some(ratios.clone()) });
@@ -273,9 +332,9 @@ fn allocate(original: &ModelProto, analysis: &crate::analysis::channels::Channel
     pb.finish_and_clear();
     let mut macs_of = |r: &HashMap<String, f64>| -> Result<u64> { Ok(counts(&pruned(r)?.0)?.macs) };
     let (ratios, met) = match (target.macs, target.latency) {
-        (Some(f), None) => allocate_ratios(&mut groups, Budget::Macs((f * base as f64) as u64), &mut macs_of)?,
+        (Some(f), None) => allocate_ratios(&mut groups, Budget::Macs((f * counts(whole)?.macs as f64) as u64), &mut macs_of)?,
         (None, Some(f)) => {
-            let mut reference = OrtRuntime::new(original)?;
+            let mut reference = OrtRuntime::new(whole)?;
             let mut check = |r: &HashMap<String, f64>| -> Result<bool> { Ok(latency_ratio(&mut reference, &pruned(r)?.0, &feeds[0])? <= f) };
             allocate_ratios(&mut groups, Budget::Check(&mut check), &mut macs_of)?
         }

@@ -15,6 +15,7 @@ pub mod compare;
 pub mod context;
 pub mod geometry;
 pub mod halo;
+pub mod levels;
 pub mod pool;
 
 use crate::onnx::proto::{ModelProto, StringStringEntryProto};
