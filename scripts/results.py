@@ -444,6 +444,10 @@ def baseline(model, key=""):
 # `detect-pruned-int8` quantizes it, read against the shipped recipe's record.
 PRUNE = "  - prune: {target: {macs: 0.28}, importance: l1, round_to: 16, compensate: lstsq, ridge: 0.05}\n"
 RECOVER = "  - recover: {steps: 8000, lr: 3.0e-3, batch: 8, frames: 4096}\n"
+# The recipe's recover pass with recovery's seed 1.
+SEED1 = RECOVER.replace("}\n", ", seed: 1}\n")
+# The recipe's prune pass with the levels that hold no detections removed first.
+UNUSED_LEVELS = PRUNE.replace("target: {macs: 0.28}, ", "target: {macs: 0.28}, unused_levels: 0.005, ")
 DIRECTIONS = {
     "activation": ("importance from the mean |activation| on calibration frames instead of the weights' L1",
                    PRUNE.replace("importance: l1", "importance: activation") + RECOVER),
@@ -497,7 +501,9 @@ DIRECTIONS = {
                       "frames removed before the allocation (`unused_levels: 0.005`), the target still counted from "
                       "the model with them: the trained v8 puts every detection at stride 8, and its strides 16 and "
                       "32 held 5.6% of the pruned model's MACs",
-                      PRUNE.replace("target: {macs: 0.28}, ", "target: {macs: 0.28}, unused_levels: 0.005, ") + RECOVER),
+                      UNUSED_LEVELS + RECOVER),
+    "unused-levels-seed1": ("the unused-levels direction with recovery's seed 1 instead of 0",
+                            UNUSED_LEVELS + SEED1),
     "one-allocation": ("two cuts along one allocation: the shipped allocation to 28% of the MACs, measured once on "
                        "the unpruned model; each group keeps the square root of its final share, 3000 steps of "
                        "recovery, then the same ratios again, 5000 steps",
@@ -506,7 +512,7 @@ DIRECTIONS = {
 # The heads a direction changes anything on (the rest: both).
 ONLY = {"frames8192": ("v8 w0.25",), "seed1": ("v8 w0.25",), "v5-edges": ("v5 w0.25",), "box-iou": ("v8 w0.25",), "box-iou-64": ("v8 w0.25",), "box-iou-256": ("v8 w0.25",), "pseudo-labels": ("v8 w0.25",), "box-branch-32": ("v8 w0.25",),
         "box-branch-32-seed1": ("v8 w0.25",), "pseudo-labels-seed1": ("v8 w0.25",),
-        "unused-levels": ("v8 w0.25",)}
+        "unused-levels": ("v8 w0.25",), "unused-levels-seed1": ("v8 w0.25",)}
 
 
 def shipped_groups(ctx, text, path):
@@ -528,9 +534,6 @@ def halfway(ctx, text, path):
 # The first convolution of the YOLOv8 head's stride-8 box branch.
 STRIDE8_BOX = "/detect/cv2.0/cv2.0.0/conv/Conv_output_0"
 
-
-# The recipe's recover pass with recovery's seed 1.
-SEED1 = RECOVER.replace("}\n", ", seed: 1}\n")
 
 
 def allocation_with(ctx, text, path, changed, recover=RECOVER):
