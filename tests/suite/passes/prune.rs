@@ -290,37 +290,32 @@ fn a_box_branch_is_judged_by_its_boxes_at_their_scale() {
 }
 
 /// A detection level that holds none of the model's detections goes before any channel
-/// (`unused_levels`), exactly, and a target still counts from the model with it: the trained
-/// v8 puts every detection of its frames at stride 8, the v5 uses all three strides.
+/// (`unused_levels`), and a target still counts from the model with it: the trained v8 puts
+/// every detection of its frames at stride 8, the v5 uses all three strides. (That the cut
+/// keeps the other levels' candidates exactly is `drop-strides`' test: the same cut.)
 #[test]
 fn levels_that_detect_nothing_go_first_and_the_budget_counts_them() {
-    use crate::scene::{compile, frames, pass, verify, write};
+    use crate::scene::{compile, pass, write};
     let dir = tempfile::tempdir().unwrap();
-    let data = frames(dir.path());
-    let levels_only = write(dir.path(), "levels.yaml", "name: levels\nbase: detect-lossless\npasses: [{prune: {ratio: 0.0, unused_levels: 0.005}}]\n");
     let kept = |report: &serde_json::Value| -> Vec<(u64, bool)> {
         let p = &pass(report, "prune")["details"]["unused_levels"];
         p["levels"].as_array().unwrap_or_else(|| panic!("{p}")).iter().map(|l| (l["stride"].as_u64().unwrap(), l["kept"].as_bool().unwrap())).collect()
     };
+    let levels_only = write(dir.path(), "levels.yaml", "name: levels\nbase: detect-lossless\npasses: [{prune: {ratio: 0.0, unused_levels: 0.005}}]\n");
     let v5 = repo().join("models/trained/pdinet_v5_w0.25_trained.onnx");
     let report = compile(&v5, levels_only.to_str().unwrap(), None, &dir.path().join("v5"));
     assert_eq!(kept(&report), [(8, true), (16, true), (32, true)]);
 
-    let v8 = repo().join("models/trained/pdinet_v8_w0.25_trained.onnx");
-    let out = dir.path().join("v8");
-    let report = compile(&v8, levels_only.to_str().unwrap(), None, &out);
-    assert_eq!(kept(&report), [(8, true), (16, false), (32, false)]);
-    let p = pass(&report, "prune");
-    let ratio = p["after"]["macs"].as_f64().unwrap() / p["before"]["macs"].as_f64().unwrap();
-    assert!(ratio < 0.9, "the coarse levels' head and neck stayed: {ratio} of the MACs");
-    let j = verify(&v8, &out.join("model.onnx"), &data);
-    let agreement = j["detection"]["agreement"]["map50_95"].as_f64().unwrap();
-    assert!(agreement >= 0.99, "agreement {agreement} without the unused levels");
-
     let budget = write(dir.path(), "budget.yaml", "name: budget\nbase: detect-lossless\npasses: [{prune: {target: {macs: 0.5}, round_to: 16, compensate: none, unused_levels: 0.005}}]\n");
-    let report = compile(&v8, budget.to_str().unwrap(), None, &dir.path().join("budget"));
+    let out = dir.path().join("v8");
+    let report = compile(&repo().join("models/trained/pdinet_v8_w0.25_trained.onnx"), budget.to_str().unwrap(), None, &out);
+    assert_eq!(kept(&report), [(8, true), (16, false), (32, false)]);
+    let compiled = load(&out.join("model.onnx"));
+    let names: Vec<&str> = compiled.graph.as_ref().unwrap().node.iter().map(|n| n.name.as_str()).collect();
+    assert!(!names.iter().any(|n| n.contains("cv2.1") || n.contains("out5")), "the coarse levels' head and neck stayed: {names:?}");
     let p = pass(&report, "prune");
     let ratio = p["after"]["macs"].as_f64().unwrap() / p["before"]["macs"].as_f64().unwrap();
-    // Counted from the model without its unused levels, 0.5 would leave under 0.45 of these.
+    // Counted from the model without its unused levels (0.86 of it), 0.5 would leave under
+    // 0.45 of these.
     assert!((0.45..=0.5).contains(&ratio), "{ratio} of the MACs for a target of 0.5");
 }
