@@ -442,12 +442,13 @@ def baseline(model, key=""):
 # Directions towards a pruned detector closer to the unpruned one: (key, what changes, the
 # recipe's passes as they become). Each is `detect-pruned-f32` with one change, its INT8 as
 # `detect-pruned-int8` quantizes it, read against the shipped recipe's record.
-PRUNE = "  - prune: {target: {macs: 0.28}, importance: l1, round_to: 16, compensate: lstsq, ridge: 0.05}\n"
+PRUNE = "  - prune: {target: {macs: 0.28}, unused_levels: 0.005, importance: l1, round_to: 16, compensate: lstsq, ridge: 0.05}\n"
 RECOVER = "  - recover: {steps: 8000, lr: 3.0e-3, batch: 8, frames: 4096}\n"
 # The recipe's recover pass with recovery's seed 1.
 SEED1 = RECOVER.replace("}\n", ", seed: 1}\n")
-# The recipe's prune pass with the levels that hold no detections removed first.
-UNUSED_LEVELS = PRUNE.replace("target: {macs: 0.28}, ", "target: {macs: 0.28}, unused_levels: 0.005, ")
+# The recipe's prune pass with the levels that hold no detections removed first (the
+# recipes' since).
+UNUSED_LEVELS = PRUNE
 DIRECTIONS = {
     "activation": ("importance from the mean |activation| on calibration frames instead of the weights' L1",
                    PRUNE.replace("importance: l1", "importance: activation") + RECOVER),
