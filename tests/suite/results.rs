@@ -93,8 +93,8 @@ fn a_recipe_that_computes_something_else_since_its_record_is_named() {
 }
 
 /// A README row that reads one record per model names the stale one, not only the first's:
-/// here the v5's record ran a `detect-pruned-f32` that computed something else, the v8's the
-/// checkout's.
+/// here the v5's record ran a `detect-pruned-f32` that computed something else, the v8's (and
+/// its seed-1 run's) the checkout's.
 #[test]
 fn a_row_of_two_records_names_the_one_whose_recipe_changed() {
     let dir = tempfile::tempdir().unwrap();
@@ -105,7 +105,7 @@ from pathlib import Path
 root = Path(sys.argv[2]); sys.path.insert(0, sys.argv[1])
 import results_render as r
 now = r.digests(r.shipped(root))
-for name, recipes in (("pruned-v5-w0.25", dict(now, **{"detect-pruned-f32": "computed-else"})), ("pruned-v8-w0.25", now)):
+for name, recipes in (("pruned-v5-w0.25", dict(now, **{"detect-pruned-f32": "computed-else"})), ("pruned-v8-w0.25", now), ("seed1-v8-w0.25", now)):
     path = root / "docs/results/records" / f"{name}.json"
     record = json.loads(path.read_text()); record["recipes"] = recipes
     path.write_text(json.dumps(record))
