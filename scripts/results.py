@@ -446,9 +446,6 @@ PRUNE = "  - prune: {target: {macs: 0.28}, unused_levels: 0.005, importance: l1,
 RECOVER = "  - recover: {steps: 8000, lr: 3.0e-3, batch: 8, frames: 4096}\n"
 # The recipe's recover pass with recovery's seed 1.
 SEED1 = RECOVER.replace("}\n", ", seed: 1}\n")
-# The recipe's prune pass with the levels that hold no detections removed first (the
-# recipes' since).
-UNUSED_LEVELS = PRUNE
 DIRECTIONS = {
     "activation": ("importance from the mean |activation| on calibration frames instead of the weights' L1",
                    PRUNE.replace("importance: l1", "importance: activation") + RECOVER),
@@ -477,7 +474,7 @@ DIRECTIONS = {
                    PRUNE + RECOVER.replace("frames: 4096", "frames: 8192")),
     "seed1": ("the recipe as shipped with recovery's seed 1 instead of 0 (other simulated frames, their order and "
               "augmentation): how far one recovery moves from the next",
-              PRUNE + RECOVER.replace("}\n", ", seed: 1}\n")),
+              PRUNE + SEED1),
     "v5-edges": ("the YOLOv5 box sides' absolute error in recovery (`v5_box_edges: 16`), as YOLOv8's box edges",
                  PRUNE + RECOVER.replace("}\n", ", v5_box_edges: 16}\n")),
     "box-iou": ("1 − IoU between the student's and the teacher's YOLOv8 boxes in recovery (`box_iou: 16`), "
@@ -502,9 +499,9 @@ DIRECTIONS = {
                       "frames removed before the allocation (`unused_levels: 0.005`), the target still counted from "
                       "the model with them: the trained v8 puts every detection at stride 8, and its strides 16 and "
                       "32 held 5.6% of the pruned model's MACs",
-                      UNUSED_LEVELS + RECOVER),
+                      PRUNE + RECOVER),
     "unused-levels-seed1": ("the unused-levels direction with recovery's seed 1 instead of 0",
-                            UNUSED_LEVELS + SEED1),
+                            PRUNE + SEED1),
     "one-allocation": ("two cuts along one allocation: the shipped allocation to 28% of the MACs, measured once on "
                        "the unpruned model; each group keeps the square root of its final share, 3000 steps of "
                        "recovery, then the same ratios again, 5000 steps",
@@ -534,7 +531,6 @@ def halfway(ctx, text, path):
 
 # The first convolution of the YOLOv8 head's stride-8 box branch.
 STRIDE8_BOX = "/detect/cv2.0/cv2.0.0/conv/Conv_output_0"
-
 
 
 def allocation_with(ctx, text, path, changed, recover=RECOVER):
