@@ -147,14 +147,16 @@ impl Pass for Prune {
     fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
         let mut clock = Clock::default();
-        // What a target counts from: the model with all its levels.
-        let whole = model.clone();
+        // What a target counts from: the model with all its levels (the pruned model's input
+        // when none can go).
+        let with_levels = o.unused_levels.is_some().then(|| model.clone());
         let levels = match o.unused_levels {
             Some(share) => Some(drop_unused_levels(model, cx, share, o.seed)?),
             None => None,
         };
         clock.lap("levels");
         let original = model.clone();
+        let whole = with_levels.as_ref().unwrap_or(&original);
         let g = original.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
         let graph = Graph::build(g)?;
         let inf = infer(&graph);
@@ -183,7 +185,7 @@ impl Pass for Prune {
             (None, None) => (None, None),
             (Some(target), None) => {
                 let feeds = feeds.get(..o.sensitivity_frames.min(feeds.len())).filter(|f| !f.is_empty()).ok_or_else(|| anyhow!("a pruning target needs calibration frames: {source}"))?;
-                let (ratios, report) = allocate(&whole, &original, &analysis, &scores, o, opset, target, feeds)?;
+                let (ratios, report) = allocate(whole, &original, &analysis, &scores, o, opset, target, feeds)?;
                 if report["met"] == false {
                     cx.warn(format!("the target {target:?} is out of reach with ratios up to {}; pruned as far as the levels go", LEVELS[LEVELS.len() - 1]));
                 }
@@ -234,7 +236,7 @@ impl Pass for Prune {
             }
         }
         clock.lap("held_out_check");
-        let (before, after) = (counts(&whole)?, counts(model)?);
+        let (before, after) = (counts(whole)?, counts(model)?);
         let pruned_groups = plan.groups.iter().filter(|p| p.after < p.before).count();
         Ok(serde_json::json!({
             "ratio": if o.target.is_some() { serde_json::Value::Null } else { o.ratio.into() },
@@ -281,6 +283,9 @@ fn drop_unused_levels(model: &mut ModelProto, cx: &mut PassContext, max_share: f
     let (shares, source) = detection_shares(model, &head, &levels, &m)?;
     // No detection at all says nothing about the levels: all shares are 0 then.
     let keep: Vec<bool> = if shares.iter().all(|&s| s == 0.0) { vec![true; levels.len()] } else { shares.iter().map(|&s| s > max_share).collect() };
+    if !keep.iter().any(|&k| k) {
+        bail!("prune unused_levels {max_share} leaves no detection level: each holds at most that share of the detections ({shares:.3?}); give a smaller share");
+    }
     if keep.iter().any(|&k| !k) {
         drop_levels(model, &keep, None)?;
     }
