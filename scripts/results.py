@@ -441,7 +441,7 @@ def baseline(model, key=""):
 
 # Where a direction's seed-1 twin of the shipped recipe is not `seed1` (recorded before the
 # recipe changed), the record that is.
-BASELINE = {"levels-box-branch-32-seed1": "unused-levels-seed1"}
+BASELINE = {"head-half-seed1": "unused-levels-seed1"}
 
 
 # Directions towards a pruned detector closer to the unpruned one: (key, what changes, the
@@ -451,6 +451,7 @@ PRUNE = "  - prune: {target: {macs: 0.28}, unused_levels: 0.005, importance: l1,
 RECOVER = "  - recover: {steps: 8000, lr: 3.0e-3, batch: 8, frames: 4096}\n"
 # The recipe's recover pass with recovery's seed 1.
 SEED1 = RECOVER.replace("}\n", ", seed: 1}\n")
+HEAD_HALF = PRUNE.replace("macs: 0.28}", "macs: 0.30}").replace("}\n", ", max_ratios: {/detect/: 0.5}}\n")
 DIRECTIONS = {
     "activation": ("importance from the mean |activation| on calibration frames instead of the weights' L1",
                    PRUNE.replace("importance: l1", "importance: activation") + RECOVER),
@@ -507,12 +508,11 @@ DIRECTIONS = {
                       PRUNE + RECOVER),
     "unused-levels-seed1": ("the unused-levels direction with recovery's seed 1 instead of 0",
                             PRUNE + SEED1),
-    "levels-box-branch-32": ("the box-branch-32 direction on the allocation with unused levels removed (the shipped "
-                             "recipe's since): the first leaves the stride-8 box branch wider, where the pruned v8 loses "
-                             "at IoU 0.95; the second freed budget at IoU 0.5-0.85",
-                             lambda ctx, text, path: allocation_with(ctx, text, path, {STRIDE8_BOX: 0.5})),
-    "levels-box-branch-32-seed1": ("the levels-box-branch-32 direction with recovery's seed 1 instead of 0",
-                                   lambda ctx, text, path: allocation_with(ctx, text, path, {STRIDE8_BOX: 0.5}, SEED1)),
+    "head-half": ("the detection head's groups cut by at most half (`max_ratios: {/detect/: 0.5}`) and the target "
+                  "at 0.30 of the MACs to pay for it: the allocation cut the stride-8 box branch's first convolution "
+                  "to 16 of 64 channels, and kept at 32 (record box-branch-32) the pruned v8's boxes gained at IoU 0.95",
+                  HEAD_HALF + RECOVER),
+    "head-half-seed1": ("the head-half direction with recovery's seed 1 instead of 0", HEAD_HALF + SEED1),
     "one-allocation": ("two cuts along one allocation: the shipped allocation to 28% of the MACs, measured once on "
                        "the unpruned model; each group keeps the square root of its final share, 3000 steps of "
                        "recovery, then the same ratios again, 5000 steps",
@@ -522,7 +522,7 @@ DIRECTIONS = {
 ONLY = {"frames8192": ("v8 w0.25",), "seed1": ("v8 w0.25",), "v5-edges": ("v5 w0.25",), "box-iou": ("v8 w0.25",), "box-iou-64": ("v8 w0.25",), "box-iou-256": ("v8 w0.25",), "pseudo-labels": ("v8 w0.25",), "box-branch-32": ("v8 w0.25",),
         "box-branch-32-seed1": ("v8 w0.25",), "pseudo-labels-seed1": ("v8 w0.25",),
         "unused-levels": ("v8 w0.25",), "unused-levels-seed1": ("v8 w0.25",),
-        "levels-box-branch-32": ("v8 w0.25",), "levels-box-branch-32-seed1": ("v8 w0.25",)}
+        "head-half": ("v8 w0.25",), "head-half-seed1": ("v8 w0.25",)}
 
 
 def shipped_groups(ctx, text, path):

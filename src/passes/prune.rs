@@ -7,7 +7,8 @@
 //! compensation use them; magnitude importance without compensation needs none).
 //! With `unused_levels`, detection levels that hold (almost) none of the model's detections
 //! on calibration frames go first, as `drop-strides` removes them for a scene, and the
-//! budget still counts from the model with every level.
+//! budget still counts from the model with every level. `max_ratios` bounds what a target
+//! may cut from the groups under a name prefix.
 //! Guarantees: outputs keep their names and shapes; the image input, the detection head's
 //! output convolutions, graph outputs and `ignore` keep every channel; a group the channel
 //! analysis cannot see through is left whole and named, never pruned wrongly; compensation
@@ -80,6 +81,11 @@ pub struct Options {
     /// with all its levels, so what they cost is spent on the levels that detect. None: every
     /// level stays.
     pub unused_levels: Option<f64>,
+    /// The largest ratio a `target`'s allocation may give the groups whose anchor starts with
+    /// a prefix (prefix -> ratio; the longest matching prefix counts). The allocation reads
+    /// each cut's damage before recovery; a YOLOv8 box branch's loss shows after it, at high
+    /// IoU, where its boxes' last fraction of a pixel needs the width.
+    pub max_ratios: std::collections::BTreeMap<String, f64>,
 }
 
 /// What sensitivity-guided pruning must reach, as a fraction of the unpruned model: one of
@@ -95,7 +101,7 @@ pub struct Target {
 
 impl Default for Options {
     fn default() -> Self {
-        Options { ratio: 0.5, importance: Criterion::L1, scope: Scope::Uniform, round_to: 8, compensate: Mode::Lstsq, calib_frames: 12, ridge: 1e-3, ignore: Vec::new(), seed: 0, target: None, sensitivity_frames: 4, ratios: None, unused_levels: None }
+        Options { ratio: 0.5, importance: Criterion::L1, scope: Scope::Uniform, round_to: 8, compensate: Mode::Lstsq, calib_frames: 12, ridge: 1e-3, ignore: Vec::new(), seed: 0, target: None, sensitivity_frames: 4, ratios: None, unused_levels: None, max_ratios: Default::default() }
     }
 }
 
@@ -130,6 +136,12 @@ impl Pass for Prune {
         }
         if let Some((g, r)) = o.ratios.iter().flatten().find(|(_, r)| !(0.0..1.0).contains(*r)) {
             bail!("prune ratios: {g}'s {r} must be in [0, 1)");
+        }
+        if let Some((g, r)) = o.max_ratios.iter().find(|(_, r)| !(0.0..1.0).contains(*r)) {
+            bail!("prune max_ratios: {g}'s {r} must be in [0, 1)");
+        }
+        if !o.max_ratios.is_empty() && o.target.is_none() {
+            bail!("prune max_ratios bounds what a target allocates: give a target, e.g. target: {{macs: 0.3}}");
         }
         if o.target.is_some() && o.ratios.is_some() {
             bail!("prune takes a target or ratios, not both");
@@ -321,7 +333,8 @@ fn allocate(whole: &ModelProto, original: &ModelProto, analysis: &crate::analysi
     for (gi, g) in analysis.groups.iter().enumerate().filter(|(_, g)| g.frozen.is_none()) {
         pb.inc(1);
         let mut levels: Vec<Level> = Vec::new();
-        for &ratio in LEVELS {
+        let cap = max_ratio(&o.max_ratios, &g.anchor);
+        for &ratio in LEVELS.iter().filter(|&&r| r <= cap) {
             let (m, plan) = pruned(&HashMap::from([(g.anchor.clone(), ratio)]))?;
             let keep = plan.groups[gi].after;
             if keep >= g.classes.len() || levels.last().is_some_and(|l| l.keep == keep) {
@@ -346,6 +359,11 @@ fn allocate(whole: &ModelProto, original: &ModelProto, analysis: &crate::analysi
         _ => bail!("prune target: give exactly one of macs or latency (a fraction of the unpruned model), e.g. target: {{macs: 0.3}}"),
     };
     Ok((ratios, serde_json::json!({ "met": met, "levels": LEVELS, "frames": feeds.len(), "groups": groups })))
+}
+
+/// The largest ratio `max_ratios` lets a target give the group anchored at `anchor`.
+fn max_ratio(max_ratios: &std::collections::BTreeMap<String, f64>, anchor: &str) -> f64 {
+    max_ratios.iter().filter(|(p, _)| anchor.starts_with(p.as_str())).max_by_key(|(p, _)| p.len()).map_or(1.0, |(_, &r)| r)
 }
 
 /// ONNX Runtime latency of `candidate` over `reference`'s, timed interleaved on one frame.

@@ -289,6 +289,32 @@ fn a_box_branch_is_judged_by_its_boxes_at_their_scale() {
     assert!(of(&prune["groups"])["after"].as_u64().unwrap() > 16, "{}", of(&prune["groups"]));
 }
 
+/// `max_ratios` bounds what a target's allocation may cut from the groups under a prefix (the
+/// v8 fixture's head branches here), and is refused without a target to bound.
+#[test]
+fn max_ratios_bound_the_allocation_under_a_prefix() {
+    let dir = tempfile::tempdir().unwrap();
+    let recipe = dir.path().join("capped.yaml");
+    std::fs::write(&recipe, "name: capped\nbase: detect-lossless\npasses: [{prune: {target: {macs: 0.3}, compensate: none, max_ratios: {/detect/: 0.25}}}]\n").unwrap();
+    let out = dir.path().join("out");
+    let r = cli(&["compile", "models/fixtures/pdinet_v8_input_op13_fold.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap(), "--json"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    let prune = &report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == "prune").unwrap()["details"];
+    let groups = prune["sensitivity"]["groups"].as_array().unwrap();
+    let ratios = |g: &serde_json::Value| g["levels"].as_array().unwrap().iter().map(|l| l["ratio"].as_f64().unwrap()).collect::<Vec<_>>();
+    let (head, rest): (Vec<_>, Vec<_>) = groups.iter().partition(|g| g["anchor"].as_str().unwrap().starts_with("/detect/"));
+    assert!(!head.is_empty(), "no head group to bound: {groups:?}");
+    for g in &head {
+        assert!(ratios(g).iter().all(|&r| r <= 0.25) && g["chosen"].as_f64().unwrap() <= 0.25, "{g}");
+    }
+    assert!(rest.iter().any(|g| g["chosen"].as_f64().unwrap() > 0.25), "the target was met without cutting past the bound anywhere: {groups:?}");
+
+    let recipe = Recipe::parse("name: t\npasses:\n  - prune: {ratio: 0.5, max_ratios: {/detect/: 0.25}}\n").unwrap();
+    let err = run(&recipe, &mut random_model(7, &[0]), &mut PassContext::default()).err().expect("max_ratios without a target is refused");
+    assert!(format!("{err:#}").contains("max_ratios bounds what a target allocates"), "{err:#}");
+}
+
 /// A detection level that holds none of the model's detections goes before any channel
 /// (`unused_levels`), and a target still counts from the model with it: the trained v8 puts
 /// every detection of its frames at stride 8, the v5 uses all three strides. (That the cut
