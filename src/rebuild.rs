@@ -137,6 +137,8 @@ fn with_recorded_ratios(m: &manifest::Manifest) -> Result<crate::pipeline::Recip
         if let yaml_serde::Value::Mapping(o) = &mut spec.options {
             o.insert("target".into(), yaml_serde::Value::Null);
             o.insert("ratios".into(), yaml_serde::Value::Mapping(ratios));
+            // The bounds shaped what the timing chose; they bound no target now.
+            o.remove("max_ratios");
         }
     }
     Ok(recipe)

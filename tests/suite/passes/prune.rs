@@ -250,7 +250,7 @@ fn negative_channel_axis_is_the_channel_axis() {
 fn a_rebuild_reuses_the_ratios_a_latency_target_chose() {
     let dir = tempfile::tempdir().unwrap();
     let recipe = dir.path().join("latency.yaml");
-    std::fs::write(&recipe, "name: latency\npasses: [promote-constants, strip-recon, bind-psf, fold-constants, fold-psf-gates, fold-bn, dce, {prune: {target: {latency: 0.5}, compensate: none}}]\n").unwrap();
+    std::fs::write(&recipe, "name: latency\npasses: [promote-constants, strip-recon, bind-psf, fold-constants, fold-psf-gates, fold-bn, dce, {prune: {target: {latency: 0.5}, compensate: none, max_ratios: {/neck/: 0.5}}}]\n").unwrap();
     let (a, b) = (dir.path().join("a"), dir.path().join("b"));
     let r = cli(&["compile", "models/trained/pdinet_v5_tiny_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", a.to_str().unwrap(), "--json"]);
     assert_eq!(r.code, 0, "{}", r.stderr);
@@ -264,6 +264,7 @@ fn a_rebuild_reuses_the_ratios_a_latency_target_chose() {
     let manifest: serde_json::Value = yaml_serde::from_str(&std::fs::read_to_string(b.join("manifest.yaml")).unwrap()).unwrap();
     let prune = manifest["pipeline"]["passes"].as_array().unwrap().iter().find(|p| p["name"] == "prune").unwrap().clone();
     assert!(prune["options"]["target"].is_null() && prune["options"]["ratios"].as_object().unwrap().len() == chosen, "{prune}");
+    assert!(prune["options"]["max_ratios"].as_object().is_none_or(|m| m.is_empty()), "bounds without a target: {prune}");
 }
 
 /// A YOLOv8 head's box branch moves only the boxes, and by little against their pixel
