@@ -447,17 +447,22 @@ BASELINE = {"head-half-seed1": "unused-levels-seed1"}
 # Directions towards a pruned detector closer to the unpruned one: (key, what changes, the
 # recipe's passes as they become). Each is `detect-pruned-f32` with one change, its INT8 as
 # `detect-pruned-int8` quantizes it, read against the shipped recipe's record.
-PRUNE = "  - prune: {target: {macs: 0.28}, unused_levels: 0.005, importance: l1, round_to: 16, compensate: lstsq, ridge: 0.05}\n"
+PRUNE = "  - prune: {target: {macs: 0.30}, unused_levels: 0.005, max_ratios: {/detect/: 0.5}, importance: l1, round_to: 16, compensate: lstsq, ridge: 0.05}\n"
 RECOVER = "  - recover: {steps: 8000, lr: 3.0e-3, batch: 8, frames: 4096}\n"
 # The recipe's recover pass with recovery's seed 1.
 SEED1 = RECOVER.replace("}\n", ", seed: 1}\n")
-HEAD_HALF = PRUNE.replace("macs: 0.28}", "macs: 0.30}").replace("}\n", ", max_ratios: {/detect/: 0.5}}\n")
+
+
+def at(macs):
+    """The recipe's prune pass with its MAC target at `macs`."""
+    return re.sub(r"macs: [0-9.]+", f"macs: {macs:.2f}", PRUNE)
+
 DIRECTIONS = {
     "activation": ("importance from the mean |activation| on calibration frames instead of the weights' L1",
                    PRUNE.replace("importance: l1", "importance: activation") + RECOVER),
     "stages": ("two stages, each to 53% of the MACs before it with its own allocation, 3000 and 5000 steps of "
                "recovery (both distilled from the unpruned model)",
-               PRUNE.replace("0.28", "0.53") + RECOVER.replace("8000", "3000") + PRUNE.replace("0.28", "0.53")
+               at(0.53) + RECOVER.replace("8000", "3000") + at(0.53)
                + RECOVER.replace("8000", "5000")),
     "lr3e-3": ("recovery's learning rate 3e-3 instead of 2e-3 (2e-3 beat 1e-3 on the v8 by 0.03 of the ratio; "
                "the recipes' rate since)",
@@ -467,7 +472,7 @@ DIRECTIONS = {
                PRUNE + RECOVER.replace("lr: 3.0e-3", "lr: 4.0e-3")),
     "macs0.30": ("pruned to 30% of the MACs instead of 28%, the most the accuracy goal allows (the allocation's "
                  "extra 2% go where its sensitivity says)",
-                 PRUNE.replace("0.28", "0.30") + RECOVER),
+                 at(0.30) + RECOVER),
     "round16": ("kept channel counts multiples of 16 instead of 8 (ONNX Runtime's NCHWc block on AVX-512): in "
                 "six 640x480 latency loops it ran at 0.38-0.49x of detect-f32 (faster in five), the recipe at "
                 "0.42-0.59x, at the same MACs; the recipes' rounding since",
@@ -511,8 +516,8 @@ DIRECTIONS = {
     "head-half": ("the detection head's groups cut by at most half (`max_ratios: {/detect/: 0.5}`) and the target "
                   "at 0.30 of the MACs to pay for it: the allocation cut the stride-8 box branch's first convolution "
                   "to 16 of 64 channels, and kept at 32 (record box-branch-32) the pruned v8's boxes gained at IoU 0.95",
-                  HEAD_HALF + RECOVER),
-    "head-half-seed1": ("the head-half direction with recovery's seed 1 instead of 0", HEAD_HALF + SEED1),
+                  PRUNE + RECOVER),
+    "head-half-seed1": ("the head-half direction with recovery's seed 1 instead of 0", PRUNE + SEED1),
     "one-allocation": ("two cuts along one allocation: the shipped allocation to 28% of the MACs, measured once on "
                        "the unpruned model; each group keeps the square root of its final share, 3000 steps of "
                        "recovery, then the same ratios again, 5000 steps",
@@ -533,12 +538,18 @@ def shipped_groups(ctx, text, path):
     return pass_of(compile_(ctx, path, alone, ctx.dir / "allocation"), "prune")["details"]["sensitivity"]["groups"]
 
 
+def given(ratios):
+    """The recipe's prune pass with the per-group `ratios` (YAML flow text) given outright in
+    place of its target and the bounds on it."""
+    return re.sub(r"target: \{macs: [0-9.]+\}, (.*)max_ratios: \{[^}]*\}, ", rf"ratios: {{{ratios}}}, \1", PRUNE)
+
+
 def halfway(ctx, text, path):
     """A prune pass cutting each group of `path` halfway, in the keep fraction, to the share the
     shipped allocation chooses for it (measured by the recipe's prune pass alone)."""
     groups = shipped_groups(ctx, text, path)
     ratios = ", ".join(f'"{g["anchor"]}": {1 - (1 - g["chosen"]) ** 0.5:.6f}' for g in groups if g["chosen"] > 0)
-    return PRUNE.replace("target: {macs: 0.28}", f"ratios: {{{ratios}}}")
+    return given(ratios)
 
 
 # The first convolution of the YOLOv8 head's stride-8 box branch.
@@ -553,7 +564,7 @@ def allocation_with(ctx, text, path, changed, recover=RECOVER):
     if any(a not in {g["anchor"] for g in groups} for a in changed):
         raise Failed(f"no pruning group {sorted(changed)} in the allocation")
     ratios = ", ".join(f'"{a}": {r:.6f}' for a, r in sorted((chosen | changed).items()) if r > 0)
-    return PRUNE.replace("target: {macs: 0.28}", f"ratios: {{{ratios}}}") + recover
+    return given(ratios) + recover
 
 
 def two_cuts(cut):

@@ -2,7 +2,7 @@
 //!
 //! Builds, each in its own self-describing folder (model, report.json, manifest.yaml):
 //!   DIR/f32           the lossless detection compile, with the tract target (tract.yaml)
-//!   DIR/pruned-f32    pruned to 28% of the MACs in 16-channel steps, recovered by distillation,
+//!   DIR/pruned-f32    pruned to 30% of the MACs in 16-channel steps, recovered by distillation,
 //!                     with the tract target
 //!   DIR/pruned-int8   that model in INT8 (QDQ, for ONNX Runtime on x86)
 //!   DIR/rknn          that model legalized for the RK3588 NPU, with the RKNN target
