@@ -267,6 +267,19 @@ fn a_rebuild_reuses_the_ratios_a_latency_target_chose() {
     assert!(prune["options"]["max_ratios"].as_object().is_none_or(|m| m.is_empty()), "bounds without a target: {prune}");
 }
 
+/// The prune pass's report when `model` is compiled by the lossless passes, then `prune` with
+/// `options` (YAML flow text).
+fn prune_details(model: &str, options: &str) -> serde_json::Value {
+    let dir = tempfile::tempdir().unwrap();
+    let recipe = dir.path().join("prune.yaml");
+    std::fs::write(&recipe, format!("name: prune\nbase: detect-lossless\npasses: [{{prune: {options}}}]\n")).unwrap();
+    let out = dir.path().join("out");
+    let r = cli(&["compile", model, "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap(), "--json"]);
+    assert_eq!(r.code, 0, "{}", r.stderr);
+    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == "prune").unwrap()["details"].clone()
+}
+
 /// A YOLOv8 head's box branch moves only the boxes, and by little against their pixel
 /// coordinates: pruning reads its sensitivity from the confident boxes at their own scale.
 /// Left with 16 of its 64 channels, the trained v8's finest box branch puts its boxes off by
@@ -274,14 +287,7 @@ fn a_rebuild_reuses_the_ratios_a_latency_target_chose() {
 /// allocation keeps more of it.
 #[test]
 fn a_box_branch_is_judged_by_its_boxes_at_their_scale() {
-    let dir = tempfile::tempdir().unwrap();
-    let recipe = dir.path().join("boxes.yaml");
-    std::fs::write(&recipe, "name: boxes\nbase: detect-lossless\npasses: [{prune: {target: {macs: 0.28}, round_to: 16, compensate: none}}]\n").unwrap();
-    let out = dir.path().join("out");
-    let r = cli(&["compile", "models/trained/pdinet_v8_w0.25_trained.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap(), "--json"]);
-    assert_eq!(r.code, 0, "{}", r.stderr);
-    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
-    let prune = &report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == "prune").unwrap()["details"];
+    let prune = &prune_details("models/trained/pdinet_v8_w0.25_trained.onnx", "{target: {macs: 0.28}, round_to: 16, compensate: none}");
     let anchor = "/detect/cv2.0/cv2.0.1/conv/Conv_output_0";
     let of = |list: &serde_json::Value| list.as_array().unwrap().iter().find(|g| g["anchor"] == anchor).unwrap().clone();
     let measured = of(&prune["sensitivity"]["groups"]);
@@ -294,14 +300,7 @@ fn a_box_branch_is_judged_by_its_boxes_at_their_scale() {
 /// v8 fixture's head branches here), and is refused without a target to bound.
 #[test]
 fn max_ratios_bound_the_allocation_under_a_prefix() {
-    let dir = tempfile::tempdir().unwrap();
-    let recipe = dir.path().join("capped.yaml");
-    std::fs::write(&recipe, "name: capped\nbase: detect-lossless\npasses: [{prune: {target: {macs: 0.3}, compensate: none, max_ratios: {/detect/: 0.25}}}]\n").unwrap();
-    let out = dir.path().join("out");
-    let r = cli(&["compile", "models/fixtures/pdinet_v8_input_op13_fold.onnx", "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap(), "--json"]);
-    assert_eq!(r.code, 0, "{}", r.stderr);
-    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
-    let prune = &report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == "prune").unwrap()["details"];
+    let prune = &prune_details("models/fixtures/pdinet_v8_input_op13_fold.onnx", "{target: {macs: 0.3}, compensate: none, max_ratios: {/detect/: 0.25}}");
     let groups = prune["sensitivity"]["groups"].as_array().unwrap();
     let ratios = |g: &serde_json::Value| g["levels"].as_array().unwrap().iter().map(|l| l["ratio"].as_f64().unwrap()).collect::<Vec<_>>();
     let (head, rest): (Vec<_>, Vec<_>) = groups.iter().partition(|g| g["anchor"].as_str().unwrap().starts_with("/detect/"));
