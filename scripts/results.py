@@ -541,7 +541,10 @@ def shipped_groups(ctx, text, path):
 def given(ratios):
     """The recipe's prune pass with the per-group `ratios` (YAML flow text) given outright in
     place of its target and the bounds on it."""
-    return re.sub(r"target: \{macs: [0-9.]+\}, (.*)max_ratios: \{[^}]*\}, ", rf"ratios: {{{ratios}}}, \1", PRUNE)
+    out, n = re.subn(r"target: \{macs: [0-9.]+\}, (.*?)max_ratios: \{[^}]*\}, ", lambda m: f"ratios: {{{ratios}}}, {m[1]}", PRUNE)
+    if n != 1:
+        raise Failed("the recipe's prune pass has no MAC target and bounds to give ratios in place of")
+    return out
 
 
 def halfway(ctx, text, path):
