@@ -270,14 +270,11 @@ fn a_rebuild_reuses_the_ratios_a_latency_target_chose() {
 /// The prune pass's report when `model` is compiled by the lossless passes, then `prune` with
 /// `options` (YAML flow text).
 fn prune_details(model: &str, options: &str) -> serde_json::Value {
+    use crate::scene::{compile, pass, write};
     let dir = tempfile::tempdir().unwrap();
-    let recipe = dir.path().join("prune.yaml");
-    std::fs::write(&recipe, format!("name: prune\nbase: detect-lossless\npasses: [{{prune: {options}}}]\n")).unwrap();
-    let out = dir.path().join("out");
-    let r = cli(&["compile", model, "--pipeline", recipe.to_str().unwrap(), "--psf", "calib/single_lwir_blur.npy", "-o", out.to_str().unwrap(), "--json"]);
-    assert_eq!(r.code, 0, "{}", r.stderr);
-    let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
-    report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == "prune").unwrap()["details"].clone()
+    let recipe = write(dir.path(), "prune.yaml", &format!("name: prune\nbase: detect-lossless\npasses: [{{prune: {options}}}]\n"));
+    let report = compile(&repo().join(model), recipe.to_str().unwrap(), None, &dir.path().join("out"));
+    pass(&report, "prune")["details"].clone()
 }
 
 /// A YOLOv8 head's box branch moves only the boxes, and by little against their pixel
