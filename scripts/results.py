@@ -425,6 +425,11 @@ def averaged(model, decay=0.999):
     return experiment
 
 
+# Where a direction's seed-1 twin of the shipped recipe is not `seed1` (recorded before the
+# recipe changed), the record that is.
+BASELINE = {"head-half-seed1": "unused-levels-seed1"}
+
+
 def baseline(model, key=""):
     """The shipped `detect-pruned-f32` record on `model`, the row a direction is read against;
     for a direction on recovery's seed 1, the shipped recipe's record with that seed."""
@@ -437,11 +442,6 @@ def baseline(model, key=""):
             "map_int8": base["figures"]["map_int8"], "kept_int8": base["figures"]["kept_int8"],
             "held_out_loss_after": (rec[-1] if isinstance(rec, list) else rec)["held_out_loss_after"]} \
         | ({"name": name} if key.endswith("-seed1") else {})
-
-
-# Where a direction's seed-1 twin of the shipped recipe is not `seed1` (recorded before the
-# recipe changed), the record that is.
-BASELINE = {"head-half-seed1": "unused-levels-seed1"}
 
 
 # Directions towards a pruned detector closer to the unpruned one: (key, what changes, the
