@@ -427,7 +427,7 @@ def averaged(model, decay=0.999):
 
 # Where a direction's seed-1 twin of the shipped recipe is not `seed1` (recorded before the
 # recipe changed), the record that is.
-BASELINE = {"head-half-seed1": "unused-levels-seed1"}
+BASELINE = {"head-half-seed1": "unused-levels-seed1", "encoder-half-seed1": "head-half-seed1"}
 
 
 def baseline(model, key=""):
@@ -451,6 +451,9 @@ PRUNE = "  - prune: {target: {macs: 0.30}, unused_levels: 0.005, max_ratios: {/d
 RECOVER = "  - recover: {steps: 8000, lr: 3.0e-3, batch: 8, frames: 4096}\n"
 # The recipe's recover pass with recovery's seed 1.
 SEED1 = RECOVER.replace("}\n", ", seed: 1}\n")
+
+# The recipe's prune pass with the encoder's first two blocks bounded like the head.
+ENCODER_HALF = PRUNE.replace("{/detect/: 0.5}", "{/detect/: 0.5, /enc1/: 0.5, /enc2/: 0.5}")
 
 
 def at(macs):
@@ -518,6 +521,11 @@ DIRECTIONS = {
                   "to 16 of 64 channels, and kept at 32 (record box-branch-32) the pruned v8's boxes gained at IoU 0.95",
                   PRUNE + RECOVER),
     "head-half-seed1": ("the head-half direction with recovery's seed 1 instead of 0", PRUNE + SEED1),
+    "encoder-half": ("the encoder's full- and half-resolution groups cut by at most half as well (`max_ratios: "
+                     "{/enc1/: 0.5, /enc2/: 0.5}` beside the head's): every feature the detector sees passes through "
+                     "them, and the allocation left the full-resolution one 2 of its 8 channels",
+                     ENCODER_HALF + RECOVER),
+    "encoder-half-seed1": ("the encoder-half direction with recovery's seed 1 instead of 0", ENCODER_HALF + SEED1),
     "one-allocation": ("two cuts along one allocation: the shipped allocation to 28% of the MACs, measured once on "
                        "the unpruned model; each group keeps the square root of its final share, 3000 steps of "
                        "recovery, then the same ratios again, 5000 steps",
@@ -527,7 +535,8 @@ DIRECTIONS = {
 ONLY = {"frames8192": ("v8 w0.25",), "seed1": ("v8 w0.25",), "v5-edges": ("v5 w0.25",), "box-iou": ("v8 w0.25",), "box-iou-64": ("v8 w0.25",), "box-iou-256": ("v8 w0.25",), "pseudo-labels": ("v8 w0.25",), "box-branch-32": ("v8 w0.25",),
         "box-branch-32-seed1": ("v8 w0.25",), "pseudo-labels-seed1": ("v8 w0.25",),
         "unused-levels": ("v8 w0.25",), "unused-levels-seed1": ("v8 w0.25",),
-        "head-half": ("v8 w0.25",), "head-half-seed1": ("v8 w0.25",)}
+        "head-half": ("v8 w0.25",), "head-half-seed1": ("v8 w0.25",),
+        "encoder-half": ("v8 w0.25",), "encoder-half-seed1": ("v8 w0.25",)}
 
 
 def shipped_groups(ctx, text, path):
