@@ -536,7 +536,7 @@ ONLY = {"frames8192": ("v8 w0.25",), "seed1": ("v8 w0.25",), "v5-edges": ("v5 w0
         "box-branch-32-seed1": ("v8 w0.25",), "pseudo-labels-seed1": ("v8 w0.25",),
         "unused-levels": ("v8 w0.25",), "unused-levels-seed1": ("v8 w0.25",),
         "head-half": ("v8 w0.25",), "head-half-seed1": ("v8 w0.25",),
-        "encoder-half": ("v8 w0.25",), "encoder-half-seed1": ("v8 w0.25",)}
+        "encoder-half-seed1": ("v8 w0.25",)}
 
 
 def shipped_groups(ctx, text, path):
