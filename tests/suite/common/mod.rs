@@ -59,9 +59,18 @@ pub struct CliResult {
 }
 
 pub fn cli(args: &[&str]) -> CliResult {
+    cli_without(args, &[])
+}
+
+/// `cli` with the environment variables `unset` removed for the command.
+pub fn cli_without(args: &[&str], unset: &[&str]) -> CliResult {
     // On the CPU: the claims about training (the same bytes, one process against ranks) are
     // the CPU's; a GPU's kernels are not deterministic.
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_pdi-compile")).args(args).current_dir(repo()).env("CUDA_VISIBLE_DEVICES", "").output().unwrap();
+    let mut command = std::process::Command::new(env!("CARGO_BIN_EXE_pdi-compile"));
+    for k in unset {
+        command.env_remove(k);
+    }
+    let out = command.args(args).current_dir(repo()).env("CUDA_VISIBLE_DEVICES", "").output().unwrap();
     CliResult {
         code: out.status.code().unwrap_or(-1),
         stdout: String::from_utf8_lossy(&out.stdout).into_owned(),

@@ -237,14 +237,18 @@ fn a_pruned_compile_is_byte_identical_when_repeated_under_load() {
     assert!(manifest.contains("reproducible: true") && manifest.contains("steps: 30"), "{manifest}");
 
     // One busy loop on the 2-core machines this runs on: the training's two threads share the
-    // cores with it (two loops also starved the test running beside this one).
+    // cores with it (two loops also starved the test running beside this one). It spins only
+    // while this test holds the workers' turn, which the rebuild then runs in without taking it
+    // again: queued behind another test's training, it would slow that training instead.
+    let turn = pdi_compile::pyenv::exclusive().unwrap();
     let load: Vec<std::process::Child> = (0..1).map(|_| std::process::Command::new("sh").args(["-c", "while :; do :; done"]).spawn().unwrap()).collect();
     // The manifest alone rebuilds it.
-    let r = cli(&["rebuild", a.to_str().unwrap(), "-o", b.to_str().unwrap(), "--json"]);
+    let r = cli_without(&["rebuild", a.to_str().unwrap(), "-o", b.to_str().unwrap(), "--json"], &["PDI_WORKER_LOCK"]);
     for mut p in load {
         let _ = p.kill();
         let _ = p.wait();
     }
+    drop(turn);
     assert_eq!(r.code, 0, "{}\n{}", r.stdout, r.stderr);
     let report: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
     assert!(report["identical"] == true && report["compared_by"].as_str().unwrap().starts_with("bytes"), "{report}");
