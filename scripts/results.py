@@ -452,8 +452,11 @@ RECOVER = "  - recover: {steps: 8000, lr: 3.0e-3, batch: 8, frames: 4096}\n"
 # The recipe's recover pass with recovery's seed 1.
 SEED1 = RECOVER.replace("}\n", ", seed: 1}\n")
 
-# The recipe's prune pass with the encoder's first two blocks bounded like the head.
+# The recipe's prune pass with the encoder's first two blocks bounded like the head; a recipe
+# whose bounds moved would otherwise leave it the shipped pass, measured under another name.
 ENCODER_HALF = PRUNE.replace("{/detect/: 0.5}", "{/detect/: 0.5, /enc1/: 0.5, /enc2/: 0.5}")
+if ENCODER_HALF == PRUNE:
+    raise Failed("the recipe's prune pass has no `{/detect/: 0.5}` bounds for the encoder-half direction to extend")
 
 
 def at(macs):
