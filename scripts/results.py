@@ -457,6 +457,9 @@ SEED1 = RECOVER.replace("}\n", ", seed: 1}\n")
 ENCODER_HALF = PRUNE.replace("{/detect/: 0.5}", "{/detect/: 0.5, /enc1/: 0.5, /enc2/: 0.5}")
 if ENCODER_HALF == PRUNE:
     raise Failed("the recipe's prune pass has no `{/detect/: 0.5}` bounds for the encoder-half direction to extend")
+# The same with only the full-resolution block and the half-resolution block's first
+# convolution bounded: the two the v8's allocation moves under ENCODER_HALF.
+ENCODER_ENTRY = ENCODER_HALF.replace("/enc2/: 0.5", "/enc2/body/body.0: 0.5")
 
 
 def at(macs):
@@ -529,6 +532,12 @@ DIRECTIONS = {
                      "them, and the allocation left the full-resolution one 2 of its 8 channels",
                      ENCODER_HALF + RECOVER),
     "encoder-half-seed1": ("the encoder-half direction with recovery's seed 1 instead of 0", ENCODER_HALF + SEED1),
+    "encoder-entry": ("only the encoder's full-resolution block and the half-resolution block's first convolution "
+                      "cut by at most half (`max_ratios: {/enc1/: 0.5, /enc2/body/body.0: 0.5}` beside the head's): "
+                      "on the v8 the encoder-half allocation (its records stand for it there); on the v5, where encoder-half cost 0.04 of the ratio, "
+                      "the half-resolution block's second convolution and the backbone behind it keep the shipped "
+                      "allocation's cuts",
+                      ENCODER_ENTRY + RECOVER),
     "one-allocation": ("two cuts along one allocation: the shipped allocation to 28% of the MACs, measured once on "
                        "the unpruned model; each group keeps the square root of its final share, 3000 steps of "
                        "recovery, then the same ratios again, 5000 steps",
@@ -539,7 +548,7 @@ ONLY = {"frames8192": ("v8 w0.25",), "seed1": ("v8 w0.25",), "v5-edges": ("v5 w0
         "box-branch-32-seed1": ("v8 w0.25",), "pseudo-labels-seed1": ("v8 w0.25",),
         "unused-levels": ("v8 w0.25",), "unused-levels-seed1": ("v8 w0.25",),
         "head-half": ("v8 w0.25",), "head-half-seed1": ("v8 w0.25",),
-        "encoder-half-seed1": ("v8 w0.25",)}
+        "encoder-half-seed1": ("v8 w0.25",), "encoder-entry": ("v5 w0.25",)}
 
 
 def shipped_groups(ctx, text, path):
