@@ -366,7 +366,7 @@ pub struct Variants {
     data: Option<PathBuf>,
     /// Total optimizer steps of the recovery by distillation, shared among the recipe's
     /// recover passes (default: the recipe's); fewer steps train on proportionally fewer of
-    /// the recipe's frames, at least 512.
+    /// the recipe's frames, at least 512 or what the steps draw, whichever is less.
     #[arg(long)]
     recover_steps: Option<usize>,
     /// Threads for ONNX Runtime and tract alike (default: every core).

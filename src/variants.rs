@@ -75,9 +75,11 @@ pub fn last_pass_of(text: &str, name: &str) -> Result<String> {
 /// `text` with its recovery's total step budget set to `steps` (unchanged when None), shared
 /// among its `recover` passes in the recipe's own proportions (a recipe that prunes in stages
 /// recovers after each). A pass that names its frames and is given fewer steps than its own
-/// trains on proportionally fewer, never fewer than the pass's default (nor more than it asked
-/// for): a recipe's frame count is sized for its own steps, a recovery of a tenth of them sees
-/// a tenth of the frames, and drawing the rest cost 26 s of a 2-minute demo on 2 cores.
+/// trains on proportionally fewer, never fewer than the pass's default or the frames its steps
+/// draw, whichever is less (nor more than it asked for): a recipe's frame count is sized for
+/// its own steps, a recovery of a tenth of them sees a tenth of the frames, and drawing the
+/// rest cost 26 s of a 2-minute demo on 2 cores. A frame past its steps' batches is never
+/// trained on: 8 steps of 8 drew 512 frames, and their teacher outputs took half the recovery.
 pub fn with_recover_steps(text: &str, steps: Option<usize>) -> Result<String> {
     let Some(steps) = steps else { return Ok(text.to_string()) };
     if steps == 0 {
@@ -96,7 +98,9 @@ pub fn with_recover_steps(text: &str, steps: Option<usize>) -> Result<String> {
         };
         m.insert("steps".into(), (share as u64).into());
         if let Some(asked) = asked {
-            let fewer = (asked as f64 * share / own(p)).max(defaults.frames as f64).min(asked as f64).round() as u64;
+            let batch = p.options.get("batch").and_then(|b| b.as_u64()).unwrap_or(defaults.schedule.batch as u64) as f64;
+            let floor = (share * batch).min(defaults.frames as f64);
+            let fewer = (asked as f64 * share / own(p)).max(floor).min(asked as f64).round() as u64;
             m.insert("frames".into(), fewer.into());
         }
         p.options = yaml_serde::Value::Mapping(m);
@@ -248,8 +252,14 @@ mod tests {
         // 600 and the default 1000 steps: 160 shared 600:1000.
         assert_eq!(steps, [60, 100]);
         assert_eq!(r.passes[1].options.get("lr").unwrap().as_f64(), Some(0.002));
-        // A tenth of its steps: a tenth of 2048 frames, held at 512; the default stays unset.
-        assert_eq!(r.passes[1].options.get("frames").unwrap().as_u64(), Some(512));
+        // A tenth of its steps: a tenth of 2048 frames, held at what 60 steps draw (at most the
+        // default 512); the default stays unset.
+        let batch = crate::passes::recover::Options::default().schedule.batch as u64;
+        assert_eq!(r.passes[1].options.get("frames").unwrap().as_u64(), Some((60 * batch).min(512)));
+        let short = Recipe::parse(&with_recover_steps("name: t\npasses:\n  - recover: {steps: 8000, batch: 8, frames: 4096}\n", Some(8)).unwrap()).unwrap();
+        assert_eq!(short.passes[0].options.get("frames").unwrap().as_u64(), Some(64), "8 steps of 8 draw 64 frames");
+        let demo = Recipe::parse(&with_recover_steps("name: t\npasses:\n  - recover: {steps: 8000, batch: 8, frames: 4096}\n", Some(800)).unwrap()).unwrap();
+        assert_eq!(demo.passes[0].options.get("frames").unwrap().as_u64(), Some(512), "a tenth of 4096, held at the default");
         assert!(r.passes[3].options.get("frames").is_none());
         let longer = Recipe::parse(&with_recover_steps(text, Some(16000)).unwrap()).unwrap();
         assert_eq!(longer.passes[1].options.get("frames").unwrap().as_u64(), Some(2048));
