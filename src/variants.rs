@@ -256,10 +256,10 @@ mod tests {
         // default 512); the default stays unset.
         let batch = crate::passes::recover::Options::default().schedule.batch as u64;
         assert_eq!(r.passes[1].options.get("frames").unwrap().as_u64(), Some((60 * batch).min(512)));
-        let short = Recipe::parse(&with_recover_steps("name: t\npasses:\n  - recover: {steps: 8000, batch: 8, frames: 4096}\n", Some(8)).unwrap()).unwrap();
-        assert_eq!(short.passes[0].options.get("frames").unwrap().as_u64(), Some(64), "8 steps of 8 draw 64 frames");
-        let demo = Recipe::parse(&with_recover_steps("name: t\npasses:\n  - recover: {steps: 8000, batch: 8, frames: 4096}\n", Some(800)).unwrap()).unwrap();
-        assert_eq!(demo.passes[0].options.get("frames").unwrap().as_u64(), Some(512), "a tenth of 4096, held at the default");
+        let shipped = "name: t\npasses:\n  - recover: {steps: 8000, batch: 8, frames: 4096}\n";
+        let frames = |steps| Recipe::parse(&with_recover_steps(shipped, Some(steps)).unwrap()).unwrap().passes[0].options.get("frames").unwrap().as_u64();
+        assert_eq!(frames(8), Some(64), "8 steps of 8 draw 64 frames");
+        assert_eq!(frames(800), Some(512), "a tenth of 4096, held at the default");
         assert!(r.passes[3].options.get("frames").is_none());
         let longer = Recipe::parse(&with_recover_steps(text, Some(16000)).unwrap()).unwrap();
         assert_eq!(longer.passes[1].options.get("frames").unwrap().as_u64(), Some(2048));
