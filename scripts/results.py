@@ -434,14 +434,19 @@ def baseline(model, key=""):
     """The shipped `detect-pruned-f32` record on `model`, the row a direction is read against;
     for a direction on recovery's seed 1, the shipped recipe's record with that seed."""
     name = f"{BASELINE.get(key, 'seed1' if key.endswith('-seed1') else 'pruned')}-{slug(model)}"
+    base = baseline_of(name)
+    return base and base | ({"name": name} if key.endswith("-seed1") else {})
+
+
+def baseline_of(name):
+    """The figures a direction is read against from record `name`, None without one."""
     base = previous(name)
     if not base:
         return None
     rec = base["figures"]["recover"]
     return {"commit": base["commit"], "map_f32": base["figures"]["map_f32"], "kept_f32": base["figures"]["kept_f32"],
             "map_int8": base["figures"]["map_int8"], "kept_int8": base["figures"]["kept_int8"],
-            "held_out_loss_after": (rec[-1] if isinstance(rec, list) else rec)["held_out_loss_after"]} \
-        | ({"name": name} if key.endswith("-seed1") else {})
+            "held_out_loss_after": (rec[-1] if isinstance(rec, list) else rec)["held_out_loss_after"]}
 
 
 # Directions towards a pruned detector closer to the unpruned one: (key, what changes, the
@@ -798,16 +803,26 @@ def pruned_640(ctx):
     }
 
 
-def elsewhere(model):
+def elsewhere(model, key=None):
     def experiment(ctx):
         """The shipped pruned recipes on a model none of their settings were chosen on (the 640x480
         model fine-tuned on its own scenes, models/finetune-640.sh), given only unlabelled frames
         as a user has them (`--calib`: scenes of seed 3, their labels left behind), scored on the
-        labels of the held-out scenes (seed 2), which neither its training nor the compile saw."""
+        labels of the held-out scenes (seed 2), which neither its training nor the compile saw.
+        With `key`, `detect-pruned-f32`'s prune pass is ELSEWHERE_DIRECTIONS' instead."""
         path = MODELS_640[model]
         frames, calib = eval_640(ctx, 2), unlabelled(ctx, 3, ELSEWHERE_FRAMES)
         f32 = ctx.dir / "f32"
-        rep = compile_(ctx, path, "passes/detect-pruned-f32.yaml", f32, "--calib", calib)
+        recipe, change = "passes/detect-pruned-f32.yaml", {}
+        if key:
+            text = (ROOT / recipe).read_text()
+            if PRUNE not in text:
+                raise Failed("detect-pruned-f32's prune pass is not the one the directions edit")
+            what, prune = ELSEWHERE_DIRECTIONS[key]
+            recipe = ctx.dir / f"{key}.yaml"
+            recipe.write_text(text.replace(PRUNE, prune))
+            change = {"change": what, "baseline": baseline_of(f"elsewhere-{slug(model).split('-')[0]}")}
+        rep = compile_(ctx, path, recipe, f32, "--calib", calib)
         q = compile_(ctx, f32 / "model.onnx", own_passes(ctx, "detect-pruned-int8"), ctx.dir / "int8", "--calib", calib)
         prune, rec = pass_of(rep, "prune"), pass_of(rep, "recover")
         tr = rec["details"]["training"]
@@ -822,8 +837,17 @@ def elsewhere(model):
             "frames": rec["details"]["frames"], "calibration": rec["details"]["calibration"],
             "recovery_kept": rec["details"]["kept"],
             "compile_seconds": rep["millis"] / 1000, "int8_seconds": q["millis"] / 1000,
-        }
+        } | change
     return experiment
+
+
+# Prune passes measured on the models trained elsewhere in place of the recipe's: key -> (what
+# changes, the pass).
+ELSEWHERE_DIRECTIONS = {
+    "first-prune": ("the prune pass of the first run on this model (commit 24108dc): 28% of the MACs, counts "
+                    "rounded to 8, no bounds, every detection level kept",
+                    "  - prune: {target: {macs: 0.28}, importance: l1, round_to: 8, compensate: lstsq, ridge: 0.05}\n"),
+}
 
 
 # Unlabelled frames `elsewhere` gives the compile, as a user's folder might hold (recovery
@@ -1131,6 +1155,10 @@ def experiments(gpu):
         ("pruned-640", "full", "camera.md", pruned_640, cpu),
         ("elsewhere-v8", "full", "pruning.md", elsewhere("v8 w0.25"), cpu),
         ("elsewhere-v5", "full", "pruning.md", elsewhere("v5 w0.25"), cpu),
+    ] + [
+        (f"elsewhere-{key}-{slug(m).split('-')[0]}", "full", "pruning.md", elsewhere(m, key), cpu)
+        for key in ELSEWHERE_DIRECTIONS for m in ("v8 w0.25",)
+    ] + [
         ("ship-640-v5", "full", "camera.md", ship_640("v5 w0.25"), cpu),
         ("ship-640-v8", "full", "camera.md", ship_640("v8 w0.25"), cpu),
         ("latency-640", "full", "latency.md", latency_640, cpu),

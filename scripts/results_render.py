@@ -93,7 +93,7 @@ def used(r, texts):
             if k in cmd:
                 whole |= set(w)
                 own |= set(o)
-    if "direction" in r["figures"]:
+    if "direction" in r["figures"] or "change" in r["figures"]:
         whole.add("detect-pruned-f32")  # each direction is that recipe with one change
     todo, out = sorted(whole & texts.keys()), own & texts.keys()
     while todo:
@@ -276,14 +276,20 @@ def direction(f):
 
 
 def elsewhere(f):
-    rc = f["recover"]
-    return [f"The shipped pruned recipes on the {f['model']}, given only unlabelled frames: {f['calibration']} "
+    rc, b = f["recover"], f.get("baseline")
+    what = f"`detect-pruned-f32` with one change, {f['change']}," if "change" in f else "The shipped pruned recipes"
+    rows = [[f["model"], f"{f['macs_ratio']:.2f}×", f4(f["map_original"]), f"{f4(f['map_f32'])} ({f['kept_f32']:.3f}×)",
+             f"{f4(f['map_int8'])} ({f['kept_int8']:.3f}×)"]]
+    if b:
+        rows.append([f"the shipped recipes' record (commit {b['commit'][:10]})", "", "", f"{f4(b['map_f32'])} ({b['kept_f32']:.3f}×)",
+                     f"{f4(b['map_int8'])} ({b['kept_int8']:.3f}×)"])
+    gain = [] if not b else ["", f"Against the record: f32 {f['kept_f32'] - b['kept_f32']:+.3f}, INT8 "
+                                 f"{f['kept_int8'] - b['kept_int8']:+.3f} of the original's mAP."]
+    return [f"{what} on the {f['model']}, given only unlabelled frames: {f['calibration']} "
             f"({f['calib_frames']} in the folder, {f['frames']} of them held in training; no labels read). Recovery: "
             f"{rc['steps']} steps on {rc['crop'] or 'whole frames'} in {dur(rc['seconds'])} "
             f"({rc['frames_per_second']:.1f} frames/s); mAP@0.5:0.95 on the labelled held-out scenes at 640×480:", ""] + \
-        table(["model", "MACs", "mAP original", "pruned f32", "pruned INT8"],
-              [[f["model"], f"{f['macs_ratio']:.2f}×", f4(f["map_original"]), f"{f4(f['map_f32'])} ({f['kept_f32']:.3f}×)",
-                f"{f4(f['map_int8'])} ({f['kept_int8']:.3f}×)"]])
+        table(["model", "MACs", "mAP original", "pruned f32", "pruned INT8"], rows) + gain
 
 
 def camera(f):
@@ -449,6 +455,7 @@ def history(r):
 
 def block(r, stale=()):
     fn = BLOCKS.get(r["name"]) or (pruned if r["name"].startswith("pruned-") else averaged if r["name"].startswith("ema-")
+                                   else elsewhere if r["name"].startswith("elsewhere-")
                                    else direction if "direction" in r["figures"] else None)
     commit = r["commit"][:10] + (" (with uncommitted changes to the product)" if r["commit_has_changes"] else "")
     load = r["machine"].get("load_before")
