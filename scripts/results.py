@@ -809,18 +809,18 @@ def elsewhere(model, key=None):
         model fine-tuned on its own scenes, models/finetune-640.sh), given only unlabelled frames
         as a user has them (`--calib`: scenes of seed 3, their labels left behind), scored on the
         labels of the held-out scenes (seed 2), which neither its training nor the compile saw.
-        With `key`, `detect-pruned-f32`'s prune pass is ELSEWHERE_DIRECTIONS' instead."""
+        With `key`, `detect-pruned-f32`'s prune and recover passes are ELSEWHERE_DIRECTIONS'."""
         path = MODELS_640[model]
         frames, calib = eval_640(ctx, 2), unlabelled(ctx, 3, ELSEWHERE_FRAMES)
         f32 = ctx.dir / "f32"
         recipe, change = "passes/detect-pruned-f32.yaml", {}
         if key:
             text = (ROOT / recipe).read_text()
-            if PRUNE not in text:
-                raise Failed("detect-pruned-f32's prune pass is not the one the directions edit")
-            what, prune = ELSEWHERE_DIRECTIONS[key]
+            if PRUNE + RECOVER not in text:
+                raise Failed("detect-pruned-f32's prune and recover passes are not the ones the directions edit")
+            what, passes = ELSEWHERE_DIRECTIONS[key]
             recipe = ctx.dir / f"{key}.yaml"
-            recipe.write_text(text.replace(PRUNE, prune))
+            recipe.write_text(text.replace(PRUNE + RECOVER, passes))
             change = {"change": what, "baseline": baseline_of(f"elsewhere-{slug(model).split('-')[0]}")}
         rep = compile_(ctx, path, recipe, f32, "--calib", calib)
         q = compile_(ctx, f32 / "model.onnx", own_passes(ctx, "detect-pruned-int8"), ctx.dir / "int8", "--calib", calib)
@@ -841,12 +841,13 @@ def elsewhere(model, key=None):
     return experiment
 
 
-# Prune passes measured on the models trained elsewhere in place of the recipe's: key -> (what
-# changes, the pass).
+# Changes measured on the models trained elsewhere: key -> (what changes, the recipe's prune and
+# recover passes as they become).
 ELSEWHERE_DIRECTIONS = {
     "first-prune": ("the prune pass of the first run on this model (commit 24108dc): 28% of the MACs, counts "
                     "rounded to 8, no bounds, every detection level kept",
-                    "  - prune: {target: {macs: 0.28}, importance: l1, round_to: 8, compensate: lstsq, ridge: 0.05}\n"),
+                    "  - prune: {target: {macs: 0.28}, importance: l1, round_to: 8, compensate: lstsq, ridge: 0.05}\n" + RECOVER),
+    "seed1": ("recovery's seed 1 instead of 0 (another frame order and augmentation)", PRUNE + SEED1),
 }
 
 
