@@ -848,6 +848,8 @@ ELSEWHERE_DIRECTIONS = {
                     "rounded to 8, no bounds, every detection level kept",
                     "  - prune: {target: {macs: 0.28}, importance: l1, round_to: 8, compensate: lstsq, ridge: 0.05}\n" + RECOVER),
     "seed1": ("recovery's seed 1 instead of 0 (another frame order and augmentation)", PRUNE + SEED1),
+    "round8": ("kept channel counts rounded to 8 instead of 16 (on this model the first run's allocation of "
+               "the backbone, neck and encoder, channel for channel)", PRUNE.replace("round_to: 16", "round_to: 8") + RECOVER),
 }
 
 
