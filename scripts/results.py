@@ -850,6 +850,9 @@ ELSEWHERE_DIRECTIONS = {
     "seed1": ("recovery's seed 1 instead of 0 (another frame order and augmentation)", PRUNE + SEED1),
     "round8": ("kept channel counts rounded to 8 instead of 16 (on this model the first run's allocation of "
                "the backbone, neck and encoder, channel for channel)", PRUNE.replace("round_to: 16", "round_to: 8") + RECOVER),
+    "round8-no-head-bound": ("counts rounded to 8 and the detection head's groups left to the allocation "
+                             "(no `/detect/: 0.5` bound): on this model the first run's allocation of every level "
+                             "that detects", PRUNE.replace("round_to: 16", "round_to: 8").replace("/detect/: 0.5, ", "") + RECOVER),
 }
 
 
