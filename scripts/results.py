@@ -851,8 +851,8 @@ ELSEWHERE_DIRECTIONS = {
     "round8": ("kept channel counts rounded to 8 instead of 16 (on this model the first run's allocation of "
                "the backbone, neck and encoder, channel for channel)", PRUNE.replace("round_to: 16", "round_to: 8") + RECOVER),
     "round8-no-head-bound": ("counts rounded to 8 and the detection head's groups left to the allocation "
-                             "(no `/detect/: 0.5` bound): on this model the first run's allocation of every level "
-                             "that detects", PRUNE.replace("round_to: 16", "round_to: 8").replace("/detect/: 0.5, ", "") + RECOVER),
+                             "(no `/detect/: 0.5` bound): the stride-8 box branch at 16 of its 64 channels as in the "
+                             "first run, what that saves spent on the stride-16 and -32 backbone and the encoder", PRUNE.replace("round_to: 16", "round_to: 8").replace("/detect/: 0.5, ", "") + RECOVER),
 }
 
 
