@@ -261,35 +261,40 @@ def averaged(f):
             "its held-out loss differs from the record's (another machine or trainer), so the rows compare less directly.")]
 
 
+def kept(x):
+    """The pruned f32 and INT8 cells of a direction or its baseline: mAP (share of the original's)."""
+    return [f"{f4(x['map_f32'])} ({x['kept_f32']:.3f}×)", f"{f4(x['map_int8'])} ({x['kept_int8']:.3f}×)"]
+
+
+def against(f, b):
+    """The lines saying what a direction gained over its baseline record `b` (none without one)."""
+    return [] if not b else ["", f"Against the record: f32 {f['kept_f32'] - b['kept_f32']:+.3f}, INT8 "
+                                 f"{f['kept_int8'] - b['kept_int8']:+.3f} of the original's mAP."]
+
+
 def direction(f):
     b, rs = f["baseline"], f["recover"]
     steps = " + ".join(f"{r['steps']}" for r in rs)
     secs = sum(r["seconds"] for r in rs)
     what = f"record `{b['name']}`" if b and b.get("name") else "the shipped recipe's record"
-    rows = [[what + (f" (commit {b['commit'][:10]})" if b else ""),
-             "-" if not b else f"{f4(b['map_f32'])} ({b['kept_f32']:.3f}×)", "-" if not b else f"{f4(b['map_int8'])} ({b['kept_int8']:.3f}×)"],
-            [f"{f['direction']} ({f['macs_ratio']:.3f}× MACs)", f"{f4(f['map_f32'])} ({f['kept_f32']:.3f}×)", f"{f4(f['map_int8'])} ({f['kept_int8']:.3f}×)"]]
-    gain = "" if not b else f" Against the record: f32 {f['kept_f32'] - b['kept_f32']:+.3f}, INT8 {f['kept_int8'] - b['kept_int8']:+.3f} of the original's mAP."
+    rows = [[what + (f" (commit {b['commit'][:10]})" if b else "")] + (kept(b) if b else ["-", "-"]),
+            [f"{f['direction']} ({f['macs_ratio']:.3f}× MACs)"] + kept(f)]
     return [f"`detect-pruned-f32` on the {f['model']} with one change: {f['change']}. Recovery: {steps} steps in "
             f"{dur(secs)}; mAP@0.5:0.95 of the original's ({f4(f['map_original'])}):", ""] + \
-        table(["recipe", "pruned f32", "pruned INT8"], rows) + ([""] + [gain.strip()] if gain else [])
+        table(["recipe", "pruned f32", "pruned INT8"], rows) + against(f, b)
 
 
 def elsewhere(f):
     rc, b = f["recover"], f.get("baseline")
     what = f"`detect-pruned-f32` with one change, {f['change']}," if "change" in f else "The shipped pruned recipes"
-    rows = [[f["model"], f"{f['macs_ratio']:.2f}×", f4(f["map_original"]), f"{f4(f['map_f32'])} ({f['kept_f32']:.3f}×)",
-             f"{f4(f['map_int8'])} ({f['kept_int8']:.3f}×)"]]
+    rows = [[f["model"], f"{f['macs_ratio']:.2f}×", f4(f["map_original"])] + kept(f)]
     if b:
-        rows.append([f"the shipped recipes' record (commit {b['commit'][:10]})", "", "", f"{f4(b['map_f32'])} ({b['kept_f32']:.3f}×)",
-                     f"{f4(b['map_int8'])} ({b['kept_int8']:.3f}×)"])
-    gain = [] if not b else ["", f"Against the record: f32 {f['kept_f32'] - b['kept_f32']:+.3f}, INT8 "
-                                 f"{f['kept_int8'] - b['kept_int8']:+.3f} of the original's mAP."]
+        rows.append([f"the shipped recipes' record (commit {b['commit'][:10]})", "", ""] + kept(b))
     return [f"{what} on the {f['model']}, given only unlabelled frames: {f['calibration']} "
             f"({f['calib_frames']} in the folder, {f['frames']} of them held in training; no labels read). Recovery: "
             f"{rc['steps']} steps on {rc['crop'] or 'whole frames'} in {dur(rc['seconds'])} "
             f"({rc['frames_per_second']:.1f} frames/s); mAP@0.5:0.95 on the labelled held-out scenes at 640×480:", ""] + \
-        table(["model", "MACs", "mAP original", "pruned f32", "pruned INT8"], rows) + gain
+        table(["model", "MACs", "mAP original", "pruned f32", "pruned INT8"], rows) + against(f, b)
 
 
 def camera(f):
