@@ -599,15 +599,22 @@ def two_cuts(cut):
     return cut + RECOVER.replace("8000", "3000") + cut + RECOVER.replace("8000", "5000")
 
 
+def recipe_with(ctx, key, passes, path):
+    """`detect-pruned-f32` with its prune and recover passes replaced by `passes` (the text, or a
+    function of the context, the recipe's text and the model at `path`), as ctx.dir/KEY.yaml."""
+    text = (ROOT / "passes/detect-pruned-f32.yaml").read_text()
+    if PRUNE + RECOVER not in text:
+        raise Failed("detect-pruned-f32's prune and recover passes are not the ones the directions edit")
+    recipe = ctx.dir / f"{key}.yaml"
+    recipe.write_text(text.replace(PRUNE + RECOVER, passes(ctx, text, path) if callable(passes) else passes))
+    return recipe
+
+
 def direction(model, key):
     def experiment(ctx):
         change, passes = DIRECTIONS[key]
-        text = (ROOT / "passes/detect-pruned-f32.yaml").read_text()
-        if PRUNE + RECOVER not in text:
-            raise Failed("detect-pruned-f32's prune and recover passes are not the ones the directions edit")
         path = MODELS[model]
-        recipe = ctx.dir / f"{key}.yaml"
-        recipe.write_text(text.replace(PRUNE + RECOVER, passes(ctx, text, path) if callable(passes) else passes))
+        recipe = recipe_with(ctx, key, passes, path)
         f32 = ctx.dir / "f32"
         rep = compile_(ctx, path, recipe, f32)
         q = compile_(ctx, f32 / "model.onnx", own_passes(ctx, "detect-pruned-int8"), ctx.dir / "int8")
@@ -815,13 +822,9 @@ def elsewhere(model, key=None):
         f32 = ctx.dir / "f32"
         recipe, change = "passes/detect-pruned-f32.yaml", {}
         if key:
-            text = (ROOT / recipe).read_text()
-            if PRUNE + RECOVER not in text:
-                raise Failed("detect-pruned-f32's prune and recover passes are not the ones the directions edit")
             what, passes = ELSEWHERE_DIRECTIONS[key]
-            recipe = ctx.dir / f"{key}.yaml"
-            recipe.write_text(text.replace(PRUNE + RECOVER, passes))
-            change = {"change": what, "baseline": baseline_of(f"elsewhere-{slug(model).split('-')[0]}")}
+            recipe = recipe_with(ctx, key, passes, path)
+            change = {"change": what, "baseline": baseline_of(f"elsewhere-{model.split()[0]}")}
         rep = compile_(ctx, path, recipe, f32, "--calib", calib)
         q = compile_(ctx, f32 / "model.onnx", own_passes(ctx, "detect-pruned-int8"), ctx.dir / "int8", "--calib", calib)
         prune, rec = pass_of(rep, "prune"), pass_of(rep, "recover")
@@ -1162,7 +1165,7 @@ def experiments(gpu):
         ("elsewhere-v8", "full", "pruning.md", elsewhere("v8 w0.25"), cpu),
         ("elsewhere-v5", "full", "pruning.md", elsewhere("v5 w0.25"), cpu),
     ] + [
-        (f"elsewhere-{key}-{slug(m).split('-')[0]}", "full", "pruning.md", elsewhere(m, key), cpu)
+        (f"elsewhere-{key}-{m.split()[0]}", "full", "pruning.md", elsewhere(m, key), cpu)
         for key in ELSEWHERE_DIRECTIONS for m in ("v8 w0.25",)
     ] + [
         ("ship-640-v5", "full", "camera.md", ship_640("v5 w0.25"), cpu),
