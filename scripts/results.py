@@ -853,6 +853,10 @@ ELSEWHERE_DIRECTIONS = {
     "seed1": ("recovery's seed 1 instead of 0 (another frame order and augmentation)", PRUNE + SEED1),
     "round8": ("kept channel counts rounded to 8 instead of 16 (on this model the first run's allocation of "
                "the backbone, neck and encoder, channel for channel)", PRUNE.replace("round_to: 16", "round_to: 8") + RECOVER),
+    "whole-frames": ("recovery on whole 640x480 frames, 2 a step, instead of 256x192 crops, 8 a step (the same 8000 "
+                     "steps; a step's pixels 1.56x a crop step's): on a crop the stride-32 context is 8x6 cells, and "
+                     "the teacher's class scores there are not its scores on the whole frame",
+                     PRUNE + RECOVER.replace("batch: 8", "batch: 2, crop: none")),
     "round8-no-head-bound": ("counts rounded to 8 and the detection head's groups left to the allocation "
                              "(no `/detect/: 0.5` bound): the stride-8 box branch at 16 of its 64 channels as in the "
                              "first run, what that saves spent on the stride-16 and -32 backbone and the encoder", PRUNE.replace("round_to: 16", "round_to: 8").replace("/detect/: 0.5, ", "") + RECOVER),
