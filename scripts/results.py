@@ -863,6 +863,10 @@ ELSEWHERE_DIRECTIONS = {
 }
 
 
+# The directions measured on both models trained elsewhere (the rest: the v8 alone).
+ELSEWHERE_MODELS = {"whole-frames": ("v8 w0.25", "v5 w0.25")}
+
+
 # Unlabelled frames `elsewhere` gives the compile, as a user's folder might hold (recovery
 # holds up to 2 GiB of pixels, 1747 frames at 640x480).
 ELSEWHERE_FRAMES = 1000
@@ -1170,7 +1174,7 @@ def experiments(gpu):
         ("elsewhere-v5", "full", "pruning.md", elsewhere("v5 w0.25"), cpu),
     ] + [
         (f"elsewhere-{key}-{m.split()[0]}", "full", "pruning.md", elsewhere(m, key), cpu)
-        for key in ELSEWHERE_DIRECTIONS for m in ("v8 w0.25",)
+        for key in ELSEWHERE_DIRECTIONS for m in ELSEWHERE_MODELS.get(key, ("v8 w0.25",))
     ] + [
         ("ship-640-v5", "full", "camera.md", ship_640("v5 w0.25"), cpu),
         ("ship-640-v8", "full", "camera.md", ship_640("v8 w0.25"), cpu),
