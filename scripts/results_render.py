@@ -284,6 +284,13 @@ def direction(f):
         table(["recipe", "pruned f32", "pruned INT8"], rows) + against(f, b)
 
 
+def seen(rc):
+    """What a recovery's steps saw: crops, or whole frames (with how many a step, where recorded)."""
+    if rc.get("crop"):
+        return f"{rc['crop']} crops"
+    return "whole frames" + (f", {rc['batch']} a step" if rc.get("batch") else "")
+
+
 def elsewhere(f):
     rc, b = f["recover"], f.get("baseline")
     what = f"`detect-pruned-f32` with one change, {f['change']}," if "change" in f else "The shipped pruned recipes"
@@ -292,7 +299,7 @@ def elsewhere(f):
         rows.append([f"the shipped recipes' record (commit {b['commit'][:10]})", "", ""] + kept(b))
     return [f"{what} on the {f['model']}, given only unlabelled frames: {f['calibration']} "
             f"({f['calib_frames']} in the folder, {f['frames']} of them held in training; no labels read). Recovery: "
-            f"{rc['steps']} steps on {rc['crop'] or 'whole frames'} in {dur(rc['seconds'])} "
+            f"{rc['steps']} steps on {seen(rc)} in {dur(rc['seconds'])} "
             f"({rc['frames_per_second']:.1f} frames/s); mAP@0.5:0.95 on the labelled held-out scenes at 640×480:", ""] + \
         table(["model", "MACs", "mAP original", "pruned f32", "pruned INT8"], rows) + against(f, b)
 
@@ -315,12 +322,12 @@ def pruned_640(f):
     rc, small = f["recover"], f["at_256"]
     lines = table(["model", "MACs", "recovery", "mAP original", "pruned f32", "compile", "at 256×192"],
                   [[f["model"], f"{f['macs_ratio']:.2f}×",
-                    f"{rc['steps']} steps on {rc['crop'] or 'whole'} crops in {dur(rc['seconds'])} ({rc['frames_per_second']:.1f} frames/s)",
+                    f"{rc['steps']} steps on {seen(rc)} in {dur(rc['seconds'])} ({rc['frames_per_second']:.1f} frames/s)",
                     f4(f["map_original"]), f"{f4(f['map_f32'])} ({f['kept_f32']:.3f}×)", dur(f["compile_seconds"]),
                     "-" if not small else f"{dur(small['compile_seconds'])} ({f['compile_seconds'] / small['compile_seconds']:.2f}× here)"]])
     lines += ["", f"The same recipe with {f['short'][0]['steps']} recovery steps, on crops and on whole frames:", ""]
     lines += table(["frames", "recovery", "frames/s", "pruned f32 mAP", "kept"],
-                   [[s["crop"] if s["crop"] != "none" else "whole 640×480", dur(s["seconds"]), f"{s['frames_per_second']:.1f}",
+                   [[s["crop"] if s["crop"] != "none" else "whole 640×480" + (f", {s['batch']} a step" if s.get("batch") else ""), dur(s["seconds"]), f"{s['frames_per_second']:.1f}",
                      f4(s["map"]), f"{s['kept']:.3f}×"] for s in f["short"]])
     return lines
 

@@ -4,10 +4,10 @@
 //! or a scene pass (the unspecialized model, on full frames when the scene crops),
 //! a YOLOv5 or YOLOv8 head, and PyTorch (the cache's torch venv, installed on first use;
 //! `PDI_TORCH_PYTHON` points at another). Frames come from `--calib` or the physics pipeline;
-//! no labels are read. Trains on a CUDA GPU when torch sees one, else on the CPU. Frames with
-//! more than twice the pixels of 256x192 train on random 256x192 crops (`crop`), the folded
-//! gate maps cut with each: a 640x480 model's step costs what a 256x192 one's does; the
-//! held-out judgement runs on whole frames.
+//! no labels are read. Trains on a CUDA GPU when torch sees one, else on the CPU. Frames larger
+//! than 256x192 train whole, the batch counted in frames of 256x192 (`crop: auto`: 2 frames of
+//! 640x480 a step for a batch of 8); `crop: WxH` trains on random crops instead, the folded
+//! gate maps cut with each; the held-out judgement runs on whole frames.
 //! Guarantees: only initializer values change (nodes, names, shapes and types are checked);
 //! the PSF gate maps, upsampling kernels and decode constants stay as they were (only Conv
 //! weights and biases train; with `train: estimates` only the constants of `crop-roi`'s

@@ -4,17 +4,24 @@
 //! feature grid): each step cuts them to the window with the frame, for the student and the
 //! teacher alike. Anything else that fixes a shape from the frame's size (a Reshape, a Resize
 //! to fixed sizes) cannot follow a crop and is refused before training.
+//!
+//! Crops are asked for by size, not by default: a crop is not the frame the model will see.
+//! On a 256x192 window the stride-32 grid is 8x6 cells, and a model whose scores read that
+//! far (the 640x480 YOLOv8: its teacher's class scores inside a crop differ from its own on
+//! the whole frame by a rel L2 of 0.63, the YOLOv5's by 0.1) teaches its student scores it
+//! never gives on the camera's frames. `auto` trains on whole frames and reads the batch as
+//! frames of 256x192, so a step holds about the pixels the recipe's batch was chosen with.
 
 use crate::ir::{infer, Graph};
 use crate::onnx::proto::ModelProto;
 use anyhow::{anyhow, bail, Result};
 use std::collections::BTreeMap;
 
-/// Crop side `auto` picks; frames with more than twice its pixels are cropped.
+/// The frame (width, height) `auto` reads a batch in.
 const AUTO: (usize, usize) = (256, 192);
 
-/// The `crop` option of the training passes: `auto` (crops of 256x192 when the frame has
-/// more than twice its pixels), `none`, or `WxH`.
+/// The `crop` option of the training passes: `auto` (whole frames, the batch counted in
+/// frames of 256x192), `none` (whole frames, the batch as written), or `WxH` (random crops).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum Crop {
     #[default]
@@ -70,13 +77,26 @@ impl Crop {
     pub fn resolve(&self, frame: (usize, usize)) -> Result<Option<(usize, usize)>> {
         let (fh, fw) = frame;
         match *self {
-            Crop::Off => Ok(None),
-            Crop::Auto => Ok((fh * fw > 2 * AUTO.0 * AUTO.1 && fw >= AUTO.0 && fh >= AUTO.1).then_some((AUTO.1, AUTO.0))),
+            Crop::Off | Crop::Auto => Ok(None),
             Crop::Size(w, h) if w > fw || h > fh => bail!("crop {w}x{h} is larger than the {fw}x{fh} frames"),
             Crop::Size(w, h) if (w, h) == (fw, fh) => Ok(None),
             Crop::Size(w, h) => Ok(Some((h, w))),
         }
     }
+}
+
+/// Frames per step for a schedule's `batch` on frames of `frame` (height, width), split
+/// among `devices`. With `auto`, frames larger than 256x192 take fewer a step, about the
+/// pixels of `batch` frames of 256x192 (rounded up, and up to a multiple of `devices`): the
+/// 640x480 v8 trained elsewhere kept 0.981x of its mAP after 8000 steps of 2 whole frames
+/// against 0.892x after 8000 of 8 crops, in the same time. Otherwise `batch`.
+pub fn frames_per_step(crop: Crop, batch: usize, frame: (usize, usize), devices: usize) -> usize {
+    let (pixels, auto) = (frame.0 * frame.1, AUTO.0 * AUTO.1);
+    if crop != Crop::Auto || pixels <= auto {
+        return batch;
+    }
+    let devices = devices.max(1);
+    (batch * auto).div_ceil(pixels).div_ceil(devices) * devices
 }
 
 /// What the worker needs to train on crops: the crop's size, the grid its offsets fall on,
@@ -201,12 +221,26 @@ mod tests {
         assert_eq!("256x192".parse::<Crop>().unwrap(), Crop::Size(256, 192));
         assert!("250x192".parse::<Crop>().is_err());
         assert!("256".parse::<Crop>().is_err());
-        assert_eq!(Crop::Auto.resolve((480, 640)).unwrap(), Some((192, 256)));
+        assert_eq!(Crop::Auto.resolve((480, 640)).unwrap(), None, "auto trains on whole frames");
         assert_eq!(Crop::Auto.resolve((192, 256)).unwrap(), None);
-        assert_eq!(Crop::Auto.resolve((256, 320)).unwrap(), None);
+        assert_eq!(Crop::Size(256, 192).resolve((480, 640)).unwrap(), Some((192, 256)));
         assert_eq!(Crop::Size(320, 256).resolve((480, 640)).unwrap(), Some((256, 320)));
         assert_eq!(Crop::Size(640, 480).resolve((480, 640)).unwrap(), None);
         assert!(Crop::Size(704, 480).resolve((480, 640)).is_err());
         assert_eq!(Crop::Off.resolve((480, 640)).unwrap(), None);
+    }
+
+    #[test]
+    fn auto_counts_the_batch_in_frames_of_256x192() {
+        // 8 x 256x192 is 1.28 frames of 640x480: 2 a step, 4 among 4 devices.
+        assert_eq!(frames_per_step(Crop::Auto, 8, (480, 640), 1), 2);
+        assert_eq!(frames_per_step(Crop::Auto, 8, (480, 640), 4), 4);
+        assert_eq!(frames_per_step(Crop::Auto, 2, (480, 640), 1), 1);
+        assert_eq!(frames_per_step(Crop::Auto, 32, (480, 640), 1), 6);
+        // At or below 256x192, and for every other setting, the batch as written.
+        assert_eq!(frames_per_step(Crop::Auto, 8, (192, 256), 1), 8);
+        assert_eq!(frames_per_step(Crop::Auto, 8, (96, 128), 1), 8);
+        assert_eq!(frames_per_step(Crop::Off, 8, (480, 640), 1), 8);
+        assert_eq!(frames_per_step(Crop::Size(256, 192), 8, (480, 640), 1), 8);
     }
 }

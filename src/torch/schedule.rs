@@ -37,10 +37,12 @@ pub struct Schedule {
     /// 32% eagerly). `false`: each step eagerly. Where capture fails, training goes on
     /// eagerly and the report says why.
     pub cuda_graph: bool,
-    /// Train on random crops of the frames: `auto` takes 256x192 windows of frames
-    /// with more than twice their pixels (a 640x480 model then trains at a 256x192 step's
-    /// cost; the frame-shaped constants are cut with each window), `none` whole frames, or
-    /// `WxH`. Held-out frames are judged whole.
+    /// What a step sees: `auto`, whole frames with `batch` counted in frames of 256x192
+    /// (2 a step at 640x480 for a batch of 8: about the same pixels); `none`, whole frames,
+    /// `batch` of them; `WxH`, random crops of that size, `batch` of them (a 640x480 model
+    /// then trains at a 256x192 step's cost, the frame-shaped constants cut with each
+    /// window, but on a crop it sees less context than on the camera's frames). Held-out
+    /// frames are judged whole.
     pub crop: super::crops::Crop,
     /// Decay of an exponential moving average of the weights (0: none). The average, ramped
     /// in over the first steps, replaces the last step's weights where it is closer to the

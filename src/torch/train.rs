@@ -176,12 +176,13 @@ pub fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Tensor], 
     write_frames(frames, &dir.join("frames.npy"))?;
     write_frames(held_out, &dir.join("held_out.npy"))?;
     let crop = crop_plan(student, teacher, frames, o, &job)?;
+    let batch = frames_per_step(frames, o);
     let outputs_to = dir.join("outputs");
     std::fs::create_dir(&outputs_to)?;
     let mut config = serde_json::json!({
         "student": dir.join("student.onnx"), "teacher": dir.join("teacher.onnx"), "out": dir.join("trained.onnx"),
         "frames": dir.join("frames.npy"), "held_out": dir.join("held_out.npy"), "heads": job.heads, "features": job.features,
-        "window": o.window, "crop": crop, "trainable": o.trainable, "steps": s.steps, "warmup": s.warmup, "minutes": s.minutes, "threads": (s.threads() / s.devices.max(1)).max(1), "lr": s.lr, "batch": s.batch, "seed": o.seed, "cuda_graph": s.cuda_graph, "ema": s.ema, "pseudo_labels": o.pseudo_labels,
+        "window": o.window, "crop": crop, "trainable": o.trainable, "steps": s.steps, "warmup": s.warmup, "minutes": s.minutes, "threads": (s.threads() / s.devices.max(1)).max(1), "lr": s.lr, "batch": batch, "seed": o.seed, "cuda_graph": s.cuda_graph, "ema": s.ema, "pseudo_labels": o.pseudo_labels,
         "device": if s.device.is_empty() { serde_json::Value::Null } else { s.device.clone().into() },
         "outputs_to": if job.outputs { serde_json::json!(outputs_to) } else { serde_json::Value::Null },
     });
@@ -213,6 +214,16 @@ pub fn train(student: &mut ModelProto, teacher: &ModelProto, frames: &[Tensor], 
     let n_outputs = student.graph.as_ref().map_or(0, |g| g.output.len());
     let outputs = if job.outputs { (0..n_outputs).map(|k| read_tensor(&outputs_to.join(format!("out{k}.npy")))).collect::<Result<_>>()? } else { Vec::new() };
     Ok((outcome, outputs))
+}
+
+/// Frames a step trains on: `crop: auto` counts the batch in frames of 256x192 (a scene's
+/// student sees its window, and its batch stays as written).
+fn frames_per_step(frames: &[Tensor], o: &Training) -> usize {
+    let s = &o.schedule;
+    match frames.first().map(|f| f.shape.as_slice()) {
+        Some([_, _, h, w]) if o.window.is_none() => super::crops::frames_per_step(s.crop, s.batch, (*h, *w), s.devices),
+        _ => s.batch,
+    }
 }
 
 /// How the job crops its frames (`crops`), if it does: a scene's window already crops the

@@ -331,7 +331,8 @@ fn two_gloo_ranks_train_the_weights_of_one_process() {
 
 /// The full-size v5 (width 1.0, 640x480, random weights: what the paper deploys) through
 /// pruning and a short recovery on the CPU, end to end: the export, the lossless passes, a
-/// structured cut, 2 training steps of batch 2, the held-out rule. Its training frames stay
+/// structured cut, 2 training steps of batch 2 (one whole frame a step: `crop: auto` counts
+/// the batch in frames of 256x192), the held-out rule. Its training frames stay
 /// within the 2 GiB the pass holds in memory, and the report gives the frame rate.
 #[test]
 fn the_full_size_model_recovers_end_to_end_on_the_cpu() {
@@ -346,7 +347,8 @@ fn the_full_size_model_recovers_end_to_end_on_the_cpu() {
     let r = &report["passes"].as_array().unwrap().iter().find(|p| p["pass"] == "recover").unwrap()["details"];
     println!("{}", serde_json::to_string_pretty(&r["training"]).unwrap());
     assert_eq!(r["training"]["steps"], 2, "{r}");
-    assert_eq!(r["training"]["crop"], "256x192", "640x480 frames train on crops: {r}");
+    assert!(r["training"]["crop"].is_null(), "640x480 frames train whole: {r}");
+    assert_eq!(r["training"]["batch"], 1, "2 frames of 256x192 make one of 640x480: {r}");
     assert!(r["training"]["frames_per_second"].as_f64().unwrap() > 0.0, "{r}");
     let frames = r["frames"].as_u64().unwrap();
     // 8 asked for plus the draw that holds out a quarter for the rule: all in memory, far
@@ -384,7 +386,7 @@ fn a_training_set_holds_two_gib_of_pixels() {
 
 /// Training on crops of 640x480 frames: the plan cuts exactly the three folded PSF gate maps
 /// (one value per cell of the stride-4 grid) with each window, on the coarsest head grid;
-/// whole frames at 256x192 or with `crop: none`. A model that fixes a shape from the frame's
+/// whole frames with `crop: auto` or `none`. A model that fixes a shape from the frame's
 /// size where the training reads (a Reshape before a head) is refused in one line, and so
 /// are crop sizes off the grid (when the recipe loads) or larger than the frames.
 #[test]
@@ -398,11 +400,12 @@ fn crops_cut_the_gate_maps_and_refuse_what_cannot_follow() {
     compile(export.join("pdinet_v5_tiny_trained_640x480.onnx").to_str().unwrap(), "passes/detect-lossless.yaml", &compiled);
     let m = load(&compiled.join("model.onnx"));
     let values: Vec<String> = head_specs(&m).unwrap().iter().chain(feature_specs(&m, &Default::default()).unwrap().iter()).map(|s| s["value"].as_str().unwrap().to_string()).collect();
-    let p = plan(Crop::Auto, (&m, &values), (&m, &values), (480, 640)).unwrap().expect("640x480 frames are cropped");
+    let p = plan(Crop::Size(256, 192), (&m, &values), (&m, &values), (480, 640)).unwrap().expect("640x480 frames are cropped");
     assert_eq!((p.h, p.w, p.step), (192, 256, 32));
     assert_eq!(p.student.len(), 3, "{:?}", p.student);
     assert!(p.student.values().all(|&s| s == 4) && p.student == p.teacher, "{p:?}");
     assert!(plan(Crop::Off, (&m, &values), (&m, &values), (480, 640)).unwrap().is_none());
+    assert!(plan(Crop::Auto, (&m, &values), (&m, &values), (480, 640)).unwrap().is_none());
     assert_eq!(plan(Crop::Size(320, 256), (&m, &values), (&m, &values), (480, 640)).unwrap().map(|p| (p.h, p.w)), Some((256, 320)));
 
     // A Reshape to the value's own shape after the first convolution: same values, but a
@@ -417,7 +420,7 @@ fn crops_cut_the_gate_maps_and_refuse_what_cannot_follow() {
     g.initializer.push(pdi_compile::onnx::tensor_proto::from_tensor("fixed_shape", &Tensor::new(vec![4], pdi_compile::tensor::TensorData::I64(shape))));
     let reshape = pdi_compile::onnx::proto::NodeProto { name: "fixed".into(), op_type: "Reshape".into(), input: vec![format!("{value}_pre"), "fixed_shape".into()], output: vec![value], ..Default::default() };
     g.node.insert(first + 1, reshape);
-    let err = plan(Crop::Auto, (&edited, &values), (&m, &values), (480, 640)).unwrap_err().to_string();
+    let err = plan(Crop::Size(256, 192), (&edited, &values), (&m, &values), (480, 640)).unwrap_err().to_string();
     assert!(err.contains("cannot train on crops: node 'fixed' (Reshape) fixes its output's shape") && !err.contains('\n'), "{err}");
 
     for (setting, needle) in [("crop: 250x192", "both sides must be positive multiples of 32"), ("crop: 320x256", "crop 320x256 is larger than the 256x192 frames")] {
