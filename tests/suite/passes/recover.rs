@@ -386,7 +386,7 @@ fn a_training_set_holds_two_gib_of_pixels() {
 
 /// Training on crops of 640x480 frames: the plan cuts exactly the three folded PSF gate maps
 /// (one value per cell of the stride-4 grid) with each window, on the coarsest head grid;
-/// whole frames with `crop: auto` or `none`. A model that fixes a shape from the frame's
+/// whole frames with `crop: auto` or `none`; `crop_context.py` cuts them the same way. A model that fixes a shape from the frame's
 /// size where the training reads (a Reshape before a head) is refused in one line, and so
 /// are crop sizes off the grid (when the recipe loads) or larger than the frames.
 #[test]
@@ -407,6 +407,30 @@ fn crops_cut_the_gate_maps_and_refuse_what_cannot_follow() {
     assert!(plan(Crop::Off, (&m, &values), (&m, &values), (480, 640)).unwrap().is_none());
     assert!(plan(Crop::Auto, (&m, &values), (&m, &values), (480, 640)).unwrap().is_none());
     assert_eq!(plan(Crop::Size(320, 256), (&m, &values), (&m, &values), (480, 640)).unwrap().map(|p| (p.h, p.w)), Some((256, 320)));
+
+    // `crop_context.py` cuts the gate maps as the plan does: a window that is the whole frame
+    // scores what the frame scores, to float noise; a 256x192 one does not (the tiny v5's
+    // heads read beyond a crop's edges), while a gated value with little context beyond its
+    // gate map agrees inside it (a gate map cut at the wrong offset would not).
+    let data = dir.path().join("frames");
+    std::fs::create_dir(&data).unwrap();
+    for k in 0..2u32 {
+        let px: Vec<u16> = (0..640 * 480u32).map(|i| ((i % 640 + i / 640 * 3 + k * 977) % 4096 * 11) as u16).collect();
+        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(640, 480, px).unwrap().save(data.join(format!("f{k}.png"))).unwrap();
+    }
+    let context = |value: &str, crop: &str, margin: &str| -> f64 {
+        let out = std::process::Command::new(pdi_compile::pyenv::torch_python().unwrap()).current_dir(repo())
+            .args(["models/pdinet/crop_context.py", "--model", compiled.join("model.onnx").to_str().unwrap(), "--data", data.to_str().unwrap(),
+                   "--value", value, "--crop", crop, "--windows", "3", "--margin", margin]).output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        r["rel_l2"][value].as_f64().unwrap()
+    };
+    let (whole, cropped) = (context(&values[0], "640x480", "0"), context(&values[0], "256x192", "0"));
+    assert!(whole < 1e-5, "the whole frame as a window: rel L2 {whole}");
+    assert!(cropped > 1e-3 && cropped.is_finite(), "a 256x192 window: rel L2 {cropped}");
+    let gated = context("/bridge/Mul_4_output_0", "256x192", "16");
+    assert!(gated < 1e-4, "a gated value 16 cells in from a window's edges: rel L2 {gated}");
 
     // A Reshape to the value's own shape after the first convolution: same values, but a
     // shape fixed from 640x480.
