@@ -408,10 +408,11 @@ fn crops_cut_the_gate_maps_and_refuse_what_cannot_follow() {
     assert!(plan(Crop::Auto, (&m, &values), (&m, &values), (480, 640)).unwrap().is_none());
     assert_eq!(plan(Crop::Size(320, 256), (&m, &values), (&m, &values), (480, 640)).unwrap().map(|p| (p.h, p.w)), Some((256, 320)));
 
-    // `crop_context.py` cuts the gate maps as the plan does: a window that is the whole frame
-    // scores what the frame scores, to float noise; a 256x192 one does not (the tiny v5's
-    // heads read beyond a crop's edges), while a gated value with little context beyond its
-    // gate map agrees inside it (a gate map cut at the wrong offset would not).
+    // `crop_context.py`, through the trainer's ONNX Runtime teacher, cuts the gate maps as
+    // the plan does: a window that is the whole frame scores what the frame scores, to float
+    // noise; a 256x192 one does not (the tiny v5's heads read beyond a crop's edges), while a
+    // gated value with little context beyond its gate map agrees inside it (a gate map cut at
+    // the wrong offset would not).
     let data = dir.path().join("frames");
     std::fs::create_dir(&data).unwrap();
     for k in 0..2u32 {
@@ -420,7 +421,7 @@ fn crops_cut_the_gate_maps_and_refuse_what_cannot_follow() {
     }
     let context = |value: &str, crop: &str, margin: &str| -> f64 {
         let out = std::process::Command::new(pdi_compile::pyenv::torch_python().unwrap()).current_dir(repo())
-            .args(["models/pdinet/crop_context.py", "--model", compiled.join("model.onnx").to_str().unwrap(), "--data", data.to_str().unwrap(),
+            .args(["src/torch/crop_context.py", "--model", compiled.join("model.onnx").to_str().unwrap(), "--data", data.to_str().unwrap(),
                    "--value", value, "--crop", crop, "--windows", "3", "--margin", margin]).output().unwrap();
         assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
         let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
