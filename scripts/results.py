@@ -916,6 +916,24 @@ def layout_recipes(folder):
     return folder / "2d.yaml", folder / "3d.yaml"
 
 
+def without_s2d(ctx, recipe):
+    """`recipe`'s own passes without `space-to-depth` (the recipe before it)."""
+    path = own_passes(ctx, recipe)
+    text = path.read_text()
+    if "  - space-to-depth\n" not in text:
+        raise Failed(f"{recipe} no longer runs space-to-depth")
+    out = path.with_name(f"{recipe}-own-without-s2d.yaml")
+    out.write_text(text.replace("  - space-to-depth\n", ""))
+    return out
+
+
+def s2d_recipe(folder):
+    """A recipe that runs space-to-depth alone (on a float model: the float form's gain)."""
+    path = folder / "s2d.yaml"
+    path.write_text("name: s2d\npasses: [space-to-depth]\n")
+    return path
+
+
 def latency_640(ctx):
     """The trained width-0.25 v5 exported again at the camera's 640x480 (its own weights), compiled
     with the shipped recipes (recovery cut to a few steps: latency follows the structure, not
@@ -950,6 +968,11 @@ def latency_640(ctx):
         ("pruned-int8-2d", "detect-pruned-int8 without narrow-convs-nchw", "pruned-int8", two_d, ()),
         ("int8-2d", "detect-int8 without narrow-convs-nchw", "int8", two_d, ()),
         ("f32-3d", "detect-f32 with narrow-convs-nchw", "f32", three_d, ()),
+        # space-to-depth measured both ways: taken out of the INT8 recipes, put on the float ones.
+        ("int8-no-s2d", "detect-int8 without space-to-depth (the recipe before)", "f32", without_s2d(ctx, "detect-int8"), ()),
+        ("pruned-int8-no-s2d", "detect-pruned-int8 without space-to-depth (the recipe before)", "pruned-f32", without_s2d(ctx, "detect-pruned-int8"), ()),
+        ("f32-s2d", "detect-f32 with space-to-depth", "f32", s2d_recipe(tried_prune), ()),
+        ("pruned-f32-s2d", "detect-pruned-f32 with space-to-depth", "pruned-f32", s2d_recipe(tried_prune), ()),
         # What a tract deployment ships: the same models in the forms `--target tract` chose
         # for tract on this machine (wide depthwise split, column tiles where they ran faster);
         # their blur maps are bound already.
@@ -1048,6 +1071,7 @@ def latency_256(ctx):
     plan = [("f32", "detect-f32", None, "passes/detect-f32.yaml"),
             ("int8", "detect-int8", "f32", own_passes(ctx, "detect-int8")),
             ("int8-2d", "detect-int8 without narrow-convs-nchw", "int8", two_d),
+            ("int8-no-s2d", "detect-int8 without space-to-depth (the recipe before)", "f32", without_s2d(ctx, "detect-int8")),
             ("int8-all", "detect-int8 with narrow_float: 0", "f32", own_passes(ctx, "detect-int8", "narrow_float: 0")),
             ("int8-head", HEAD_QUANTIZED.format("detect-int8"), "f32", own_passes(ctx, "detect-int8", "float_head_inputs: false")),
             # Written from the float model's node names, once that model is compiled.

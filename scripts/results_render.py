@@ -360,6 +360,12 @@ def latency(f):
         pairs = [("pruned-f32", "pruned-f32-2d"), ("pruned-int8", "pruned-int8-2d"), ("int8", "int8-2d"), ("f32-3d", "f32")]
         out[-1] += (" `narrow-convs-nchw` on ONNX Runtime, each model against its 2-D form: " + ", ".join(
             f"`{a}` {by[(a, 'ort')]['median_ms'] / by[(b, 'ort')]['median_ms']:.3f}× of `{b}`" for a, b in pairs) + ".")
+    if ("int8-no-s2d", "ort") in by:
+        # space-to-depth's gain, within the same loop.
+        pairs = [("int8", "int8-no-s2d"), ("pruned-int8", "pruned-int8-no-s2d"), ("f32-s2d", "f32"), ("pruned-f32-s2d", "pruned-f32")]
+        out[-1] += (" `space-to-depth` on ONNX Runtime, each model against its form without it: " + ", ".join(
+            f"`{a}` {by[(a, 'ort')]['median_ms'] / by[(b, 'ort')]['median_ms']:.3f}× of `{b}`" for a, b in pairs)
+            + f"; on tract, `int8` {by[('int8', 'tract')]['median_ms'] / by[('int8-no-s2d', 'tract')]['median_ms']:.3f}× of `int8-no-s2d`.")
     shipped = [v for v in ("f32", "pruned-f32") if (f"{v}-tract", "tract") in by]
     if shipped:
         # What a tract deployment runs (`--target tract`) against ONNX Runtime on the plain model.
@@ -400,6 +406,8 @@ def latency_256(f):
         table(["variant", "engine", "ms", "against f32", "top operators"], rows) + \
         ["", f"On ONNX Runtime `detect-int8` runs at {by[('int8', 'ort')]['ratio']:.3f}× of `detect-f32` "
              f"(goal: no slower, ≤ 1), without its 3-D convolutions at {by[('int8-2d', 'ort')]['ratio']:.3f}×, "
+             + (f"without `space-to-depth` (the recipe before) at {by[('int8-no-s2d', 'ort')]['ratio']:.3f}×, "
+                if ("int8-no-s2d", "ort") in by else "") +
              f"with `narrow_float: 0` at {by[('int8-all', 'ort')]['ratio']:.3f}×"
              + (f", and with its last convolutions' inputs quantized (the recipe before) at {by[('int8-head', 'ort')]['ratio']:.3f}×"
                 if ("int8-head", "ort") in by else "")
@@ -446,9 +454,9 @@ def ort_ratios(figures):
 
 # The ratios a latency record's history table shows, in this order, where a loop measured them.
 HISTORY_COLUMNS = {
-    "latency-640": ["int8", "int8-head", "pruned-f32", "pruned-int8", "pruned-f32-round16", "pruned-f32-round8",
-                    "pruned-f32-latency"],
-    "latency-256": ["int8", "int8-2d", "int8-head", "int8-silu"],
+    "latency-640": ["int8", "int8-no-s2d", "int8-head", "pruned-f32", "pruned-int8", "pruned-int8-no-s2d",
+                    "pruned-f32-round16", "pruned-f32-round8", "pruned-f32-latency"],
+    "latency-256": ["int8", "int8-no-s2d", "int8-2d", "int8-head", "int8-silu"],
     "latency-640-full": ["int8", "pruned-f32", "pruned-int8"],
 }
 

@@ -59,6 +59,7 @@ registry! {
     "split-wide-depthwise" => split_wide_depthwise::SplitWideDepthwise,
     "tile-conv-columns" => tile_conv_columns::TileConvColumns { options },
     "narrow-convs-nchw" => narrow_convs_nchw::NarrowConvsNchw { options },
+    "space-to-depth" => space_to_depth::SpaceToDepth { options },
 }
 
 /// A pass built from its recipe entry, with its options as they will run: every default

@@ -63,6 +63,10 @@ impl Pass for NarrowConvsNchw {
         true
     }
 
+    fn takes_space_to_depth(&self) -> bool {
+        true
+    }
+
     fn run(&self, model: &mut ModelProto, _: &mut PassContext) -> Result<serde_json::Value> {
         let opset = crate::onnx::edit::default_opset(model).unwrap_or(13);
         let g = super::graph_mut(model)?;

@@ -149,6 +149,11 @@ pub trait Pass {
     fn takes_lifted_convs(&self) -> bool {
         false
     }
+    /// Whether the pass takes `space-to-depth`'s blocks as they are; for every other pass the
+    /// runner lowers them back first.
+    fn takes_space_to_depth(&self) -> bool {
+        false
+    }
     /// Checks what the pass will need of the input model and the command line (`--psf`),
     /// before any pass runs.
     fn preflight(&self, _input: &ModelProto, _cx: &PassContext) -> Result<()> {

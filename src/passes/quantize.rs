@@ -276,6 +276,12 @@ impl Pass for Quantize {
         }
     }
 
+    /// The blocks are quantized as they run (four times wider: integer kernels take them);
+    /// QAT's torch interpreter gets them lowered.
+    fn takes_space_to_depth(&self) -> bool {
+        self.options.qat.is_none()
+    }
+
     fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {
         let o = &self.options;
         let original = match &o.qat {

@@ -93,10 +93,14 @@ pub fn run_passes(passes: Vec<Box<dyn Pass>>, model: &mut ModelProto, cx: &mut P
     let mut before = counts(model)?;
     for pass in passes {
         let t = Instant::now();
-        // narrow-convs-nchw's 3-D convolutions go back to 2-D for every pass but those that take them.
+        // narrow-convs-nchw's 3-D convolutions and space-to-depth's blocks go back for every
+        // pass but those that take them.
         let lowered = match model.graph.as_mut() {
-            Some(g) if !pass.takes_lifted_convs() => crate::ir::rewrite::conv_3d::lower_all(g)?,
-            _ => 0,
+            Some(g) => {
+                let convs = if pass.takes_lifted_convs() { 0 } else { crate::ir::rewrite::conv_3d::lower_all(g)? };
+                convs + if pass.takes_space_to_depth() { 0 } else { crate::ir::rewrite::space_to_depth::lower_all(g)? }
+            }
+            None => 0,
         };
         if lowered > 0 {
             before = counts(model)?;

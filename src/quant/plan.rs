@@ -18,6 +18,10 @@ const DATA_MOVEMENT: &[&str] = &["MaxPool", "Resize", "Split", "Slice"];
 /// Ops ONNX Runtime has integer kernels for in QDQ form, with their activation input slots.
 const ARITHMETIC: &[&str] = &["Add", "Mul", "Concat"];
 const UNARY: &[&str] = &["Sigmoid", "AveragePool", "GlobalAveragePool"];
+/// Ops that pick one of their inputs' values: quantized when every input shares one set of
+/// parameters, and then computed on the integer codes themselves (`qdq::on_codes`), since
+/// ONNX Runtime has no QDQ fusion for them (`space-to-depth`'s pooling, a Max).
+pub const ON_CODES: &[&str] = &["Max"];
 
 #[derive(Clone, Debug, Default)]
 pub struct Plan {
@@ -42,7 +46,7 @@ impl Plan {
     pub fn activation_slots(g: &Graph, i: usize) -> Vec<usize> {
         let n = g.node(i);
         let op = n.op_type.as_str();
-        if ARITHMETIC.contains(&op) {
+        if ARITHMETIC.contains(&op) || ON_CODES.contains(&op) {
             (0..n.input.len()).filter(|&s| !n.input[s].is_empty()).collect()
         } else {
             vec![0]
@@ -100,7 +104,9 @@ pub fn plan(g: &Graph, keep_float: &HashSet<String>) -> Plan {
             Some("detection decode after the head convolutions (boxes and scores stay float)".to_string())
         } else if keep_float.contains(&n.name) || n.output.iter().any(|o| keep_float.contains(o)) {
             Some("kept float (keep_float or mixed precision)".to_string())
-        } else if !n.domain.is_empty() || !(op == "Conv" || ARITHMETIC.contains(&op) || UNARY.contains(&op) || DATA_MOVEMENT.contains(&op) || ones_upsample(g, i)) {
+        } else if ON_CODES.contains(&op) && !same_codes(g, &p, i) {
+            Some(format!("{op} of values quantized with different parameters"))
+        } else if !n.domain.is_empty() || !(op == "Conv" || ARITHMETIC.contains(&op) || UNARY.contains(&op) || DATA_MOVEMENT.contains(&op) || ON_CODES.contains(&op) || ones_upsample(g, i)) {
             Some(format!("{op} has no integer kernel in QDQ form"))
         } else if op == "Conv" && !n.input.iter().skip(1).filter(|s| !s.is_empty()).all(|s| float_constant(g, s)) {
             Some("convolution weights are not float constants".to_string())
@@ -118,7 +124,7 @@ pub fn plan(g: &Graph, keep_float: &HashSet<String>) -> Plan {
                 if heads.contains(&i) || n.output.iter().any(|o| outputs.contains(o.as_str())) {
                     p.float_output.insert(i);
                 }
-                if DATA_MOVEMENT.contains(&op) || op == "ConvTranspose" {
+                if DATA_MOVEMENT.contains(&op) || ON_CODES.contains(&op) || op == "ConvTranspose" {
                     for o in n.output.iter().filter(|o| !o.is_empty()) {
                         p.shares.insert(o.clone(), n.input[0].clone());
                     }
@@ -127,6 +133,16 @@ pub fn plan(g: &Graph, keep_float: &HashSet<String>) -> Plan {
         }
     }
     p
+}
+
+/// Whether every input of node `i` is the quantized output of a quantized node, all sharing
+/// one value's parameters, and its output is not a graph output.
+fn same_codes(g: &Graph, p: &Plan, i: usize) -> bool {
+    let n = g.node(i);
+    let outputs = g.proto.output.iter().any(|o| n.output.contains(&o.name));
+    let mut roots = n.input.iter().map(|v| (!v.is_empty() && p.produced_quantized(g, v) && !p.fused_relu.contains_key(v)).then(|| p.root(v)));
+    let Some(Some(first)) = roots.next() else { return false };
+    !outputs && roots.all(|r| r == Some(first))
 }
 
 /// Whether Relu node `i` can run as its producer's output quantization: the producer is

@@ -38,6 +38,8 @@ pub struct Emitted {
     pub biases_clamped: usize,
     /// Relus removed because their output quantization clamps at zero (`Plan::fused_relu`).
     pub relus_fused: usize,
+    /// Nodes computed on the integer codes (`plan::ON_CODES`).
+    pub on_codes: usize,
 }
 
 /// The QDQ model for `model` under `plan`.
@@ -129,10 +131,11 @@ pub fn emit(model: &ModelProto, plan: &Plan, o: &EmitOptions) -> Result<(ModelPr
         }
         node.input[2] = b_dq;
     }
+    let (on_codes, mut dead) = on_codes(&mut g, plan, src);
+    stats.on_codes = on_codes;
     // Fused Relus: the output's QuantizeLinear reads the Relu's input instead. Exact when its
     // zero point is the lowest code (always, as ranges start at 0), since the quantizer then
     // clamps negatives to zero itself.
-    let mut dead = std::collections::HashSet::new();
     for (x, &r) in &plan.fused_relu {
         let y = &src.node[r].output[0];
         let p = param(y)?;
@@ -151,6 +154,27 @@ pub fn emit(model: &ModelProto, plan: &Plan, o: &EmitOptions) -> Result<(ModelPr
     let mut out = model.clone();
     out.graph = Some(g);
     Ok((out, stats))
+}
+
+/// Makes each quantized node of `plan::ON_CODES` read its inputs' integer codes and write its
+/// output's (exact: they share one scale and zero point), in place of the DequantizeLinear
+/// before it and the QuantizeLinear after it. Returns how many, and the QuantizeLinear nodes
+/// to remove (a DequantizeLinear left unread stays for the analyses that read it; the pass's
+/// final dead-code elimination removes it).
+fn on_codes(g: &mut GraphProto, plan: &Plan, src: &GraphProto) -> (usize, std::collections::HashSet<usize>) {
+    let (mut count, mut dead) = (0, std::collections::HashSet::new());
+    let dequantizer = |g: &GraphProto, v: &str| g.node.iter().position(|n| n.op_type == "DequantizeLinear" && n.output.first().map(String::as_str) == Some(v));
+    for &i in plan.quantized.iter().filter(|&&i| super::plan::ON_CODES.contains(&src.node[i].op_type.as_str()) && !plan.float_output.contains(&i)) {
+        let y = g.node[i].output[0].clone();
+        let dqs: Option<Vec<usize>> = g.node[i].input.iter().map(|v| dequantizer(g, v)).collect();
+        let qs: Vec<usize> = (0..g.node.len()).filter(|&j| g.node[j].op_type == "QuantizeLinear" && g.node[j].input[0] == y).collect();
+        let (Some(dqs), [q]) = (dqs, qs.as_slice()) else { continue };
+        g.node[i].input = dqs.iter().map(|&d| g.node[d].input[0].clone()).collect();
+        g.node[i].output[0] = g.node[*q].output[0].clone();
+        dead.insert(*q);
+        count += 1;
+    }
+    (count, dead)
 }
 
 /// Adds QuantizeLinear(v) -> DequantizeLinear and returns the dequantized value's name.

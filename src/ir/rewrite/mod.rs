@@ -3,6 +3,7 @@
 
 pub mod conv_3d;
 pub mod dce;
+pub mod space_to_depth;
 pub mod split_depthwise;
 pub mod tile_columns;
 pub mod topo;

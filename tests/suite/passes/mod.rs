@@ -29,6 +29,7 @@ mod resize_to_deconv;
 mod rknn_hybrid;
 mod rknn_legalize;
 mod rknn_qat;
+mod space_to_depth;
 mod split_wide_depthwise;
 mod strip_recon;
 mod tile_conv_columns;
