@@ -277,9 +277,9 @@ impl Pass for Quantize {
     }
 
     /// The blocks are quantized as they run (four times wider: integer kernels take them);
-    /// QAT's torch interpreter gets them lowered.
+    /// the torch interpreter (QAT, learned rounding) has no SpaceToDepth and gets them lowered.
     fn takes_space_to_depth(&self) -> bool {
-        self.options.qat.is_none()
+        self.options.qat.is_none() && self.options.rounding == Rounding::Nearest
     }
 
     fn run(&self, model: &mut ModelProto, cx: &mut PassContext) -> Result<serde_json::Value> {

@@ -13,7 +13,8 @@
 //! tract, whose convolutions follow their multiplications, gets the block back as it was
 //! (the tract runtime and its target lower it; on the block alone tract ran the rewritten
 //! form 2.1x slower), and so does every pass after this one that does not take it (only
-//! `quantize` and `narrow-convs-nchw` do): pruning and training see the model's own layers.
+//! `narrow-convs-nchw` and `quantize` do, the latter unless it trains through torch, whose
+//! interpreter has no SpaceToDepth): pruning and training see the model's own layers.
 //!
 //! The same products summed in another order (float noise, held to ONNX Runtime at rel L2
 //! 1e-6 by the test). Needs: a block's input with a static, even height and width; f32

@@ -21,9 +21,10 @@ fn ship_writes_every_artifact_and_one_screen() {
     let macs: Vec<u64> = v.iter().map(|v| v["macs"].as_u64().unwrap()).collect();
     assert!(macs[1] < macs[0] && macs[2] * 10 <= macs[1] * 4, "pruned to about 28% of the compiled MACs: {macs:?}");
     assert!(v[1]["agreement"].as_f64().unwrap() >= 0.99, "the lossless compile agrees: {}", v[1]);
-    // INT8 is the pruned model quantized: about its MACs (the quantized form counts a few
-    // more), fewer bytes (the layers it keeps in float keep theirs).
-    assert!(macs[3].abs_diff(macs[2]) * 50 < macs[2], "pruned-int8 quantizes pruned-f32: {macs:?}");
+    // INT8 is the pruned model quantized: its MACs and more (the encoder's narrow first blocks
+    // run on 2x2 pixel blocks, four times their multiplications), fewer than the unpruned
+    // model's; fewer bytes (the layers it keeps in float keep theirs).
+    assert!(macs[3] >= macs[2] && macs[3] < 2 * macs[2], "pruned-int8 quantizes pruned-f32: {macs:?}");
     let bytes: Vec<u64> = v.iter().map(|v| v["bytes"].as_u64().unwrap()).collect();
     assert!(bytes[3] < bytes[2] && bytes[2] < bytes[1], "file sizes {bytes:?}");
     for x in &v[1..] {

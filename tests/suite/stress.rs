@@ -16,11 +16,13 @@ fn compile(recipe: &str, out: &Path, extra: &[&str]) {
     assert_eq!(r.code, 0, "{}", r.stderr);
 }
 
-/// The scale of the image input's quantizer.
+/// The scale of the image input's quantizer (on the image, or on its 2x2 pixel blocks where
+/// `space-to-depth` runs the first block on them: the same values).
 fn image_scale(model: &Path) -> f32 {
     let m = load(model);
     let g = m.graph.unwrap();
-    let q = g.node.iter().find(|n| n.op_type == "QuantizeLinear" && n.input[0] == "image").expect("the image input is quantized");
+    let blocks = g.node.iter().find(|n| n.op_type == "SpaceToDepth" && n.input[0] == "image").map(|n| n.output[0].as_str());
+    let q = g.node.iter().find(|n| n.op_type == "QuantizeLinear" && (n.input[0] == "image" || Some(n.input[0].as_str()) == blocks)).expect("the image input is quantized");
     let t = g.initializer.iter().find(|t| t.name == q.input[1]).unwrap();
     pdi_compile::onnx::tensor_proto::to_tensor(t).unwrap().as_f32().unwrap()[0]
 }

@@ -26,7 +26,8 @@ use std::collections::HashSet;
 /// Element-wise activations a block may hold between its convolutions.
 const ELEMENTWISE: &[&str] = &["Relu", "LeakyRelu", "Clip", "Sigmoid", "Tanh", "HardSigmoid", "HardSwish"];
 
-/// A block to rewrite: its nodes from the first convolution to the pooling, in order.
+/// A block to rewrite: its nodes from the first convolution up to the pooling, in order, and
+/// the pooling.
 #[derive(Debug, Clone)]
 pub struct Block {
     pub nodes: Vec<usize>,
