@@ -357,6 +357,9 @@ fn int8_beats_ort_quantize_static_on_every_channel_group() {
 fn learned_rounding_moves_weights_one_step_and_lowers_layer_error() {
     let dir = tempfile::tempdir().unwrap();
     let fast = variant(dir.path(), &every_layer(dir.path()), "calib_frames: 64", "calib_frames: 8");
+    // Learned rounding gets space-to-depth's blocks lowered (its torch interpreter has none):
+    // both compiles quantize the same layers without it.
+    let fast = variant(dir.path(), &fast, "  - space-to-depth\n", "");
     let nearest = variant(dir.path(), &fast, "error_budget: 0.1", "error_budget: 10.0");
     let learned = variant(dir.path(), &nearest, "error_budget: 10.0", "error_budget: 10.0, rounding: learned, rounding_iterations: 100, rounding_frames: 8");
     let (a, b) = (dir.path().join("nearest"), dir.path().join("learned"));
