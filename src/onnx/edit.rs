@@ -50,6 +50,26 @@ pub fn set_input_constant(g: &mut GraphProto, node: usize, slot: usize, t: &crat
     n.input[slot] = name;
 }
 
+/// Puts `t` in place of the initializer `name`, under a fresh name from `base`, when only one
+/// node reads it and it is no graph input or output (so that a rewrite and its inverse give
+/// back the same model, byte for byte); beside it otherwise. Returns the new name.
+pub fn swap_initializer(g: &mut GraphProto, name: &str, base: &str, mut t: TensorProto) -> String {
+    let readers = g.node.iter().flat_map(|n| &n.input).filter(|i| *i == name).count();
+    t.name = fresh_name(g, base);
+    let new = t.name.clone();
+    match g.initializer.iter().position(|x| x.name == name) {
+        Some(at) if readers == 1 && !g.output.iter().chain(&g.input).any(|v| v.name == name) => g.initializer[at] = t,
+        _ => g.initializer.push(t),
+    }
+    new
+}
+
+/// The one node that reads `v`, when exactly one does and `v` is no graph output.
+pub fn only_reader(g: &GraphProto, v: &str) -> Option<usize> {
+    let r: Vec<usize> = (0..g.node.len()).filter(|&j| g.node[j].input.iter().any(|i| i == v)).collect();
+    (r.len() == 1 && !g.output.iter().any(|o| o.name == v)).then(|| r[0])
+}
+
 /// A value name not used anywhere in `g`, derived from `base`.
 pub fn fresh_name(g: &GraphProto, base: &str) -> String {
     let used: HashSet<&str> = g

@@ -5,7 +5,7 @@
 //! runtime can still fuse it.
 
 use crate::onnx::attr;
-use crate::onnx::edit::{add_constant, fresh_name, initializer};
+use crate::onnx::edit::{add_constant, fresh_name, initializer, only_reader, swap_initializer};
 use crate::onnx::proto::{AttributeProto, GraphProto, NodeProto};
 use crate::onnx::tensor_proto::to_tensor;
 use crate::tensor::{DType, Tensor, TensorData};
@@ -151,10 +151,7 @@ pub fn any_lifted(g: &GraphProto) -> bool {
 
 /// The first lifted convolution of `g`: (Unsqueeze, Conv, activation, Squeeze) node indices.
 fn find_lifted(g: &GraphProto) -> Option<(usize, usize, Option<usize>, usize)> {
-    let only_reader = |v: &str| {
-        let r: Vec<usize> = (0..g.node.len()).filter(|&j| g.node[j].input.iter().any(|i| i == v)).collect();
-        (r.len() == 1 && !g.output.iter().any(|o| o.name == v)).then(|| r[0])
-    };
+    let only_reader = |v: &str| only_reader(g, v);
     let on_axis_2 = |n: &NodeProto| {
         let axes = match n.input.get(1) {
             Some(a) => initializer(g, a).and_then(|t| to_tensor(t).ok()).and_then(|t| t.as_i64s()),
@@ -206,18 +203,9 @@ fn drop_unit_axis(a: &AttributeProto) -> AttributeProto {
 /// name from it: renamed where they lie when no other node reads them, so that lifting and
 /// lowering give back the same model, byte for byte; copied otherwise.
 fn reshaped(g: &mut GraphProto, name: &str, base: &str, dims: Vec<i64>) -> Result<String> {
-    let readers = g.node.iter().flat_map(|n| &n.input).filter(|i| *i == name).count();
-    let new = fresh_name(g, base);
-    let at = g.initializer.iter().position(|t| t.name == name).ok_or_else(|| anyhow!("no initializer '{name}'"))?;
-    let mut t = g.initializer[at].clone();
-    t.name = new.clone();
+    let mut t = initializer(g, name).ok_or_else(|| anyhow!("no initializer '{name}'"))?.clone();
     t.dims = dims;
-    if readers == 1 && !g.output.iter().chain(&g.input).any(|v| v.name == name) {
-        g.initializer[at] = t;
-    } else {
-        g.initializer.push(t);
-    }
-    Ok(new)
+    Ok(swap_initializer(g, name, base, t))
 }
 
 /// Renames the value_info of `from` (a convolution's output that [`lift`] or [`lower_all`]

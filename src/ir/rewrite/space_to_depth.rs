@@ -16,7 +16,7 @@
 
 use crate::ir::{infer, Graph};
 use crate::onnx::attr;
-use crate::onnx::edit::{add_constant, fresh_name, initializer};
+use crate::onnx::edit::{add_constant, fresh_name, initializer, only_reader, swap_initializer};
 use crate::onnx::proto::{AttributeProto, GraphProto, NodeProto, TypeValue};
 use crate::onnx::tensor_proto::{from_tensor, to_tensor};
 use crate::tensor::{DType, Tensor, TensorData};
@@ -55,34 +55,36 @@ pub fn blocks(g: &GraphProto, max_channels: usize) -> Result<Vec<Block>> {
         if !halving_pool(pool) {
             continue;
         }
-        // Back from the pooling while each node is one the block may hold.
-        let mut nodes = vec![];
+        // Back from the pooling while each node is one the block may hold: (node, its
+        // channels in and out if it is a convolution).
+        let mut held: Vec<(usize, Option<(usize, usize)>)> = vec![];
         let mut v = pool.input[0].as_str();
-        while let Some(i) = g.node.iter().position(|n| n.output.first().map(String::as_str) == Some(v)) {
+        while let Some(&i) = graph.producer.get(v) {
             let n = &g.node[i];
-            let fits = (n.op_type == "Conv" && same_size_conv(g, n, max_channels).is_some())
+            let conv = if n.op_type == "Conv" { same_size_conv(g, n, max_channels) } else { None };
+            let fits = conv.is_some()
                 || (ELEMENTWISE.contains(&n.op_type.as_str()) && n.input.iter().skip(1).all(|c| c.is_empty() || initializer(g, c).is_some_and(|t| t.dims.iter().product::<i64>() == 1)));
-            if !fits || only_reader(v) != Some(nodes.last().copied().unwrap_or(p)) {
+            if !fits || only_reader(v) != Some(held.last().map_or(p, |&(j, _)| j)) {
                 break;
             }
-            nodes.push(i);
+            held.push((i, conv));
             v = n.input[0].as_str();
         }
         // The block starts at its first convolution.
-        while nodes.last().is_some_and(|&i| g.node[i].op_type != "Conv") {
-            nodes.pop();
+        while held.last().is_some_and(|&(_, conv)| conv.is_none()) {
+            held.pop();
         }
-        if nodes.is_empty() {
+        if held.is_empty() {
             continue;
         }
-        nodes.reverse();
+        held.reverse();
+        let (nodes, convs): (Vec<usize>, Vec<Option<(usize, usize)>>) = held.into_iter().unzip();
         let x = &g.node[nodes[0]].input[0];
         let Some(input) = shapes.types.get(x.as_str()).and_then(|t| t.static_shape()) else { continue };
         if input.len() != 4 || input[2] % 2 != 0 || input[3] % 2 != 0 || input[2] == 0 || input[3] == 0 {
             continue;
         }
-        let channels = nodes.iter().filter_map(|&i| same_size_conv(g, &g.node[i], max_channels)).collect();
-        out.push(Block { nodes, pool: p, channels, input });
+        out.push(Block { nodes, pool: p, channels: convs.into_iter().flatten().collect(), input });
     }
     Ok(out)
 }
@@ -136,7 +138,7 @@ pub fn rewrite(g: &mut GraphProto, block: &Block, opset: i64) -> Result<()> {
             let weights = to_blocks(&w)?;
             let kb = weights.shape[2] as i64;
             let kbw = weights.shape[3] as i64;
-            let wname = replace_constant(g, &n.input[1], &format!("{}_blocks", n.input[1]), &weights);
+            let wname = swap_initializer(g, &n.input[1], &format!("{}_blocks", n.input[1]), from_tensor("", &weights));
             let conv = &mut g.node[i];
             conv.input[1] = wname;
             set_ints(conv, "kernel_shape", vec![kb, kbw]);
@@ -144,7 +146,7 @@ pub fn rewrite(g: &mut GraphProto, block: &Block, opset: i64) -> Result<()> {
             if let Some(b) = n.input.get(2).filter(|b| !b.is_empty()) {
                 let bias = to_tensor(initializer(g, b).expect("checked by blocks"))?;
                 let tiled = Tensor::f32(vec![bias.len() * 4], bias.as_f32().ok_or_else(|| anyhow!("bias of '{}' is not f32", n.name))?.repeat(4));
-                g.node[i].input[2] = replace_constant(g, b, &format!("{b}_blocks"), &tiled);
+                g.node[i].input[2] = swap_initializer(g, b, &format!("{b}_blocks"), from_tensor("", &tiled));
             }
         }
         let y = g.node[i].output[0].clone();
@@ -265,10 +267,7 @@ struct Found {
 }
 
 fn find_rewritten(g: &GraphProto) -> Option<Found> {
-    let only_reader = |v: &str| {
-        let r: Vec<usize> = (0..g.node.len()).filter(|&j| g.node[j].input.iter().any(|i| i == v)).collect();
-        (r.len() == 1 && !g.output.iter().any(|o| o.name == v)).then(|| r[0])
-    };
+    let only_reader = |v: &str| only_reader(g, v);
     (0..g.node.len()).find_map(|s| {
         let sn = &g.node[s];
         if sn.op_type != "SpaceToDepth" || attr::int(sn, "blocksize", 0) != 2 {
@@ -323,7 +322,7 @@ fn lower(g: &mut GraphProto, f: &Found) -> Result<()> {
         if let Some(w) = w {
             let n = g.node[i].clone();
             let base = n.input[1].strip_suffix("_blocks").unwrap_or(&n.input[1]).to_string();
-            let wname = replace_constant(g, &n.input[1], &base, w);
+            let wname = swap_initializer(g, &n.input[1], &base, from_tensor("", w));
             let conv = &mut g.node[i];
             conv.input[1] = wname;
             set_ints(conv, "kernel_shape", vec![w.shape[2] as i64, w.shape[3] as i64]);
@@ -334,7 +333,7 @@ fn lower(g: &mut GraphProto, f: &Found) -> Result<()> {
                 let v = t.as_f32().expect("checked by tiled_bias");
                 let quarter = Tensor::f32(vec![v.len() / 4], v[..v.len() / 4].to_vec());
                 let base = b.strip_suffix("_blocks").unwrap_or(b).to_string();
-                g.node[i].input[2] = replace_constant(g, b, &base, &quarter);
+                g.node[i].input[2] = swap_initializer(g, b, &base, from_tensor("", &quarter));
             }
         }
         let y = g.node[i].output[0].clone();
@@ -355,20 +354,6 @@ fn lower(g: &mut GraphProto, f: &Found) -> Result<()> {
     let dead: HashSet<usize> = [f.s2d, f.split].into();
     crate::onnx::edit::remove_nodes(g, &dead);
     Ok(())
-}
-
-/// Puts `t` in place of the initializer `name` under `new` (a fresh name from it) when no
-/// other node reads it, so that a rewrite and its lowering give back the same model; beside
-/// it otherwise. Returns the name.
-fn replace_constant(g: &mut GraphProto, name: &str, new: &str, t: &Tensor) -> String {
-    let readers = g.node.iter().flat_map(|n| &n.input).filter(|i| *i == name).count();
-    let fresh = fresh_name(g, new);
-    let proto = from_tensor(&fresh, t);
-    match g.initializer.iter().position(|x| x.name == name) {
-        Some(at) if readers == 1 && !g.output.iter().chain(&g.input).any(|v| v.name == name) => g.initializer[at] = proto,
-        _ => g.initializer.push(proto),
-    }
-    fresh
 }
 
 /// Sets attribute `name` where it is (so that lowering gives back the same bytes), or adds it.

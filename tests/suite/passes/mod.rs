@@ -111,6 +111,16 @@ pub fn assert_same(before: &[(String, Tensor)], after: &[(String, Tensor)], tol:
     }
 }
 
+/// A later pass (`dce`) given `rewritten` (`pass`'s output) gets the original form back under
+/// its own names: the same bytes as that pass on `original`.
+pub fn assert_later_passes_get_the_original(original: &ModelProto, rewritten: &ModelProto, pass: &str) {
+    use prost::Message;
+    let (mut plain, mut lowered) = (original.clone(), rewritten.clone());
+    run_passes(&mut plain, "dce");
+    run_passes(&mut lowered, "dce");
+    assert!(plain.encode_to_vec() == lowered.encode_to_vec(), "dce after {pass} differs from dce alone");
+}
+
 /// `m` on ONNX Runtime and on tract gives `before` (the outputs before a rewrite, on ORT)
 /// within float noise: rel L2 below 1e-6 on every output.
 pub fn assert_float_noise_on_ort_and_tract(before: &[(String, Tensor)], m: &ModelProto, inputs: &[(String, Tensor)]) {

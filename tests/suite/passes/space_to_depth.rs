@@ -5,7 +5,6 @@
 
 use super::*;
 use pdi_compile::onnx::attr::make_ints;
-use prost::Message;
 
 /// A 2 -> 4 convolution (3x3, bias) and Relu, a 4 -> 3 one (5x5, no bias) and LeakyRelu, a 2x2
 /// max pooling, then a 1x1 convolution after the block. `height` x `width` input; `r_out`
@@ -65,10 +64,7 @@ fn a_narrow_block_runs_on_pixel_blocks_and_computes_the_same() {
 
     // Any later pass gets the block back under its own names: the same bytes as that pass on
     // the original.
-    let (mut plain, mut lowered) = (original.clone(), m.clone());
-    run_passes(&mut plain, "dce");
-    run_passes(&mut lowered, "dce");
-    assert!(plain.encode_to_vec() == lowered.encode_to_vec(), "dce after space-to-depth differs from dce alone");
+    assert_later_passes_get_the_original(&original, &m, "space-to-depth");
 }
 
 #[test]
