@@ -28,6 +28,13 @@ fn every_layer(dir: &Path) -> String {
     path.to_str().unwrap().to_string()
 }
 
+/// [`every_layer`] without `space-to-depth`: learned rounding and QAT train through the torch
+/// interpreter, which has no SpaceToDepth, so the pipeline lowers its blocks before them; the
+/// compiles these tests compare with them quantize the same layers.
+fn every_layer_unblocked(dir: &Path) -> String {
+    variant(dir, &every_layer(dir), "  - space-to-depth\n", "")
+}
+
 /// `pdi-compile compile model --pipeline recipe --psf PSF -o out --json extra...`.
 fn run_compile(model: &str, recipe: &str, out: &Path, extra: &[&str]) -> CliResult {
     let mut args = vec!["compile", model, "--pipeline", recipe, "--psf", PSF, "-o", out.to_str().unwrap(), "--json"];
@@ -356,10 +363,7 @@ fn int8_beats_ort_quantize_static_on_every_channel_group() {
 #[test]
 fn learned_rounding_moves_weights_one_step_and_lowers_layer_error() {
     let dir = tempfile::tempdir().unwrap();
-    let fast = variant(dir.path(), &every_layer(dir.path()), "calib_frames: 64", "calib_frames: 8");
-    // Learned rounding gets space-to-depth's blocks lowered (its torch interpreter has none):
-    // both compiles quantize the same layers without it.
-    let fast = variant(dir.path(), &fast, "  - space-to-depth\n", "");
+    let fast = variant(dir.path(), &every_layer_unblocked(dir.path()), "calib_frames: 64", "calib_frames: 8");
     let nearest = variant(dir.path(), &fast, "error_budget: 0.1", "error_budget: 10.0");
     let learned = variant(dir.path(), &nearest, "error_budget: 10.0", "error_budget: 10.0, rounding: learned, rounding_iterations: 100, rounding_frames: 8");
     let (a, b) = (dir.path().join("nearest"), dir.path().join("learned"));
@@ -472,7 +476,7 @@ fn qat_on_two_gloo_ranks_trains_the_integers_of_one_process() {
 /// The tiny model compiled with `detect-int8` on 32 calibration frames, into `dir/plain`, and
 /// the same with a short QAT (its options followed by `more`) into `dir/qat`; the QAT report.
 fn plain_and_qat(dir: &Path, more: &str) -> (std::path::PathBuf, std::path::PathBuf, serde_json::Value) {
-    let fast = variant(dir, &every_layer(dir), "calib_frames: 64", "calib_frames: 32");
+    let fast = variant(dir, &every_layer_unblocked(dir), "calib_frames: 64", "calib_frames: 32");
     let plain = variant(dir, &fast, "error_budget: 0.1", "error_budget: 10.0");
     // The steps end it (about 15 s on 2 idle cores); the minutes only cap a loaded machine,
     // where 2 of them once left 11 of its 24 steps.
