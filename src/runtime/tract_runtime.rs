@@ -63,7 +63,8 @@ pub fn tract_ready(model: &ModelProto) -> Result<std::borrow::Cow<'_, ModelProto
 /// 640x480), `space-to-depth`'s float blocks back at full resolution (tract's convolutions
 /// follow their multiplications: 2.1x slower on blocks), and depthwise convolutions wider
 /// than tract's SIMD kernel takes split into bands (`split-wide-depthwise`; the same sums in
-/// another order), since past 128 taps tract runs them as scalar loops. Returns the depthwise convolutions split and those left.
+/// another order), since past 128 taps tract runs them as scalar loops. Returns the depthwise
+/// convolutions split and those left.
 pub fn make_tract_ready(g: &mut GraphProto) -> Result<(Vec<serde_json::Value>, Vec<serde_json::Value>)> {
     crate::ir::rewrite::conv_3d::lower_all(g)?;
     crate::ir::rewrite::space_to_depth::lower_all(g)?;
