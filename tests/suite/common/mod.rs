@@ -121,6 +121,10 @@ pub fn eval_frames_at(n: usize, size: &str) -> PathBuf {
     root.join("eval").join("degraded")
 }
 
+/// The line of the INT8 recipes that runs `space-to-depth`: the tests of what torch trains
+/// take it out, since the pipeline lowers its blocks before any torch training.
+pub const SPACE_TO_DEPTH: &str = "  - space-to-depth\n";
+
 /// The text of the shipped recipe `recipe` (repo-relative) with `from` replaced by `to`;
 /// fails if the recipe no longer has `from` (an edit that replaces nothing tests nothing).
 pub fn recipe_edit(recipe: &str, from: &str, to: &str) -> String {

@@ -32,7 +32,7 @@ fn every_layer(dir: &Path) -> String {
 /// interpreter, which has no SpaceToDepth, so the pipeline lowers its blocks before them; the
 /// compiles these tests compare with them quantize the same layers.
 fn every_layer_unblocked(dir: &Path) -> String {
-    variant(dir, &every_layer(dir), "  - space-to-depth\n", "")
+    variant(dir, &every_layer(dir), SPACE_TO_DEPTH, "")
 }
 
 /// `pdi-compile compile model --pipeline recipe --psf PSF -o out --json extra...`.

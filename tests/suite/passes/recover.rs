@@ -38,7 +38,7 @@ fn the_interpreter_matches_onnx_runtime_op_by_op() {
     let recipe = dir.path().join("pruned.yaml");
     std::fs::write(&recipe, format!("name: t\npasses: [{LOSSLESS}, {{prune: {{ratio: 0.5, compensate: none}}}}, cleanup]\n")).unwrap();
     let int8 = dir.path().join("int8.yaml");
-    std::fs::write(&int8, recipe_edit("passes/detect-int8.yaml", "  - space-to-depth\n", "")).unwrap();
+    std::fs::write(&int8, recipe_edit("passes/detect-int8.yaml", SPACE_TO_DEPTH, "")).unwrap();
     for (model, recipe) in [("models/trained/pdinet_v5_w0.25_trained.onnx", recipe.to_str().unwrap()), ("models/trained/pdinet_v8_w0.25_trained.onnx", "passes/detect-f32.yaml"), ("models/trained/pdinet_v5_tiny_trained.onnx", int8.to_str().unwrap()), ("models/trained/pdinet_v8_w0.25_trained.onnx", "passes/detect-rknn.yaml")] {
         let out = dir.path().join(model.replace('/', "_"));
         compile(model, recipe, &out);
