@@ -178,18 +178,68 @@ fn finish(child: &mut std::process::Child, ranks: usize, grace: std::time::Durat
 }
 
 /// With `PDI_WORKER_LOCK` naming a file, the Python workers that take every core (trainings,
-/// the toolkit) run one at a time across all the processes naming it: two trainings on the
-/// same cores slow each other several-fold (a QAT test: 38 s alone, 421 s beside another). The
-/// turn ends when the returned file is dropped; without the variable there is no lock.
+/// the toolkit) take turns across all the processes naming it: two trainings on the same
+/// cores slow each other several-fold (a QAT test: 38 s alone, 421 s beside another). With
+/// `PDI_WORKER_SLOTS=N` as well, N turns run side by side, each training on its share of the
+/// cores ([`worker_share`]): on small models one thread trains nearly as fast as two, so two
+/// one-thread trainings do more in the same time than two-thread ones one after the other.
+/// The turn ends when the returned file is dropped; without the variable there is no lock.
 pub fn exclusive() -> Result<Option<std::fs::File>> {
     let Some(path) = std::env::var_os("PDI_WORKER_LOCK") else { return Ok(None) };
-    let file = std::fs::OpenOptions::new().create(true).truncate(false).write(true).open(&path).with_context(|| format!("PDI_WORKER_LOCK: cannot open {}", Path::new(&path).display()))?;
+    turn(Path::new(&path), worker_slots()?).map(Some)
+}
+
+/// One of `slots` turns on the lock files `path` (slot 0), `path.1`, …: the first free one,
+/// waiting until one is free.
+fn turn(path: &Path, slots: usize) -> Result<std::fs::File> {
     use std::os::fd::AsRawFd;
-    // SAFETY: flock on a descriptor this function owns; it blocks until the turn comes.
-    if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX) } != 0 {
-        bail!("PDI_WORKER_LOCK: cannot lock {}: {}", Path::new(&path).display(), std::io::Error::last_os_error());
+    let open = |p: &Path| std::fs::OpenOptions::new().create(true).truncate(false).write(true).open(p).with_context(|| format!("PDI_WORKER_LOCK: cannot open {}", p.display()));
+    // SAFETY: flock on a descriptor this function owns.
+    let lock = |f: &std::fs::File, how: libc::c_int| unsafe { libc::flock(f.as_raw_fd(), how) } == 0;
+    if slots == 1 {
+        let file = open(path)?;
+        if !lock(&file, libc::LOCK_EX) {
+            bail!("PDI_WORKER_LOCK: cannot lock {}: {}", path.display(), std::io::Error::last_os_error());
+        }
+        return Ok(file);
     }
-    Ok(Some(file))
+    let mut files = (0..slots).map(|k| if k == 0 { open(path) } else { open(&PathBuf::from(format!("{}.{k}", path.display()))) }).collect::<Result<Vec<_>>>()?;
+    loop {
+        for k in 0..slots {
+            if lock(&files[k], libc::LOCK_EX | libc::LOCK_NB) {
+                return Ok(files.swap_remove(k));
+            }
+            let e = std::io::Error::last_os_error();
+            if e.raw_os_error() != Some(libc::EWOULDBLOCK) {
+                bail!("PDI_WORKER_LOCK: cannot lock {}: {e}", path.display());
+            }
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+}
+
+/// `PDI_WORKER_SLOTS`: how many workers' turns run at once (1 unless set with
+/// `PDI_WORKER_LOCK`).
+fn worker_slots() -> Result<usize> {
+    if std::env::var_os("PDI_WORKER_LOCK").is_none() {
+        return Ok(1);
+    }
+    match std::env::var("PDI_WORKER_SLOTS") {
+        Err(std::env::VarError::NotPresent) => Ok(1),
+        Ok(v) => match v.trim().parse::<usize>() {
+            Ok(n) if (1..=64).contains(&n) => Ok(n),
+            _ => bail!("PDI_WORKER_SLOTS: expected a count from 1 to 64, got {v:?}"),
+        },
+        Err(_) => bail!("PDI_WORKER_SLOTS: not valid UTF-8"),
+    }
+}
+
+/// The cores one worker's turn has: every core of this machine, divided among the turns that
+/// run at once ([`exclusive`]); at least one. A training whose recipe leaves `threads` at 0
+/// trains on this many (the manifest records it).
+pub fn worker_share() -> usize {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    (cores / worker_slots().unwrap_or(1)).max(1)
 }
 
 /// Bytes under `dir` (files only; links not followed).
@@ -225,6 +275,28 @@ mod tests {
 
     fn sh(script: &str) -> std::process::Child {
         Command::new("sh").args(["-c", script]).spawn().unwrap()
+    }
+
+    #[test]
+    fn turns_run_as_many_at_once_as_there_are_slots() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("worker.lock");
+        let (a, b) = (turn(&path, 2).unwrap(), turn(&path, 2).unwrap());
+        // A third waits until one of the two ends.
+        let (tx, rx) = std::sync::mpsc::channel();
+        let p = path.clone();
+        std::thread::spawn(move || tx.send(turn(&p, 2).map(|_| ()).is_ok()).unwrap());
+        assert!(rx.recv_timeout(Duration::from_millis(400)).is_err(), "a third turn ran beside two");
+        drop(b);
+        assert!(rx.recv_timeout(Duration::from_secs(5)).unwrap());
+        drop(a);
+        // One slot: the file itself, as before.
+        let one = turn(&path, 1).unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || tx.send(turn(&path, 1).is_ok()).unwrap());
+        assert!(rx.recv_timeout(Duration::from_millis(400)).is_err(), "two turns with one slot");
+        drop(one);
+        assert!(rx.recv_timeout(Duration::from_secs(5)).unwrap());
     }
 
     #[test]

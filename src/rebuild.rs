@@ -71,7 +71,9 @@ pub fn rebuild(req: &RebuildRequest) -> Result<RebuildReport> {
         moved: None,
     };
     // The manifest's recipe already has the scene's passes in place; with_scene keeps them.
-    compile_recipe(&compile, with_recorded_ratios(&m)?)?;
+    let mut recipe = with_recorded_ratios(&m)?;
+    pin_recorded_threads(&mut recipe, &m.training);
+    compile_recipe(&compile, recipe)?;
     let original = req.dir.join(&m.model);
     let rebuilt = req.out.join("model.onnx");
     let rebuilt_sha256 = manifest::sha256_file(&rebuilt)?;
@@ -144,6 +146,28 @@ fn with_recorded_ratios(m: &manifest::Manifest) -> Result<crate::pipeline::Recip
     Ok(recipe)
 }
 
+/// Sets each training's `threads: 0` (every core of the compiling machine, or its share of
+/// them when workers ran side by side: `pyenv::worker_share`) to the count that training
+/// recorded, so that a rebuild trains with the same sums whatever runs beside it. The
+/// trainings of one pass name are matched to the passes of that name in order.
+fn pin_recorded_threads(recipe: &mut crate::pipeline::Recipe, training: &[crate::torch::train::Account]) {
+    let mut used = vec![false; training.len()];
+    for spec in &mut recipe.passes {
+        // The schedule's keys sit flat in the pass's options, or under `qat` (`quantize`).
+        let in_qat = spec.options.get("qat").is_some_and(yaml_serde::Value::is_mapping);
+        let options = if in_qat { spec.options.get_mut("qat") } else { Some(&mut spec.options) };
+        let Some(yaml_serde::Value::Mapping(o)) = options else { continue };
+        let Some(threads) = o.get("threads").and_then(yaml_serde::Value::as_u64) else { continue };
+        let Some(k) = (0..training.len()).find(|&k| !used[k] && training[k].pass == spec.name) else { continue };
+        used[k] = true;
+        if threads != 0 {
+            continue;
+        }
+        let devices = o.get("devices").and_then(yaml_serde::Value::as_u64).unwrap_or(1).max(1);
+        o.insert("threads".into(), (training[k].threads as u64 * devices).into());
+    }
+}
+
 impl RebuildReport {
     pub fn render(&self) -> String {
         let mut s = format!("rebuilt {} -> {}\n  compared by {}\n", self.from, self.to, self.compared_by);
@@ -161,5 +185,32 @@ impl RebuildReport {
         }
         s += if self.passed { "rebuild holds\n" } else { "rebuild FAILED: the same host and recipe gave other bytes\n" };
         s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::torch::train::Account;
+
+    fn account(pass: &str, threads: usize) -> Account {
+        Account { pass: pass.into(), device: "cpu".into(), threads, torch: "2.4".into(), steps: 1, steps_planned: 1, capped: false, not_reproducible: None }
+    }
+
+    #[test]
+    fn trainings_on_every_core_rebuild_on_the_count_they_recorded() {
+        let mut recipe = crate::pipeline::Recipe::parse(
+            "name: r\npasses:\n  - recover: {threads: 0, devices: 2}\n  - recover: {threads: 3}\n  - recover: {threads: 0}\n  - quantize: {qat: {threads: 0}}\n  - quantize: {}\n",
+        )
+        .unwrap();
+        // Per rank, as the worker reports it: the first recover ran 2 ranks of 1 thread.
+        pin_recorded_threads(&mut recipe, &[account("recover", 1), account("recover", 3), account("recover", 2), account("quantize", 1)]);
+        let threads = |k: usize, path: &[&str]| path.iter().fold(&recipe.passes[k].options, |v, key| &v[*key]).as_u64();
+        assert_eq!(threads(0, &["threads"]), Some(2));
+        assert_eq!(threads(1, &["threads"]), Some(3));
+        // The recover that asked for 3 took its own account; the third gets the third.
+        assert_eq!(threads(2, &["threads"]), Some(2));
+        assert_eq!(threads(3, &["qat", "threads"]), Some(1));
+        assert_eq!(threads(4, &["threads"]), None);
     }
 }

@@ -12,6 +12,13 @@ pub struct OrtRuntime {
     session: Session,
 }
 
+/// Whether ONNX Runtime's intra-op threads spin between parallel sections (its default, the
+/// lowest latency). `PDI_ORT_SPIN=0` makes them sleep: where several processes share the
+/// cores (the test suite's tests side by side), a spinning pool takes them from the others.
+fn spinning() -> bool {
+    std::env::var_os("PDI_ORT_SPIN").is_none_or(|v| v != "0")
+}
+
 impl OrtRuntime {
     pub fn new(model: &ModelProto) -> Result<OrtRuntime> {
         Self::with_options(model, GraphOptimizationLevel::Level3, 1)
@@ -32,6 +39,7 @@ impl OrtRuntime {
         let session = Session::builder(env)
             .and_then(|b| b.with_optimization_level(level).map_err(Into::into))
             .and_then(|b| b.with_intra_threads(threads).map_err(Into::into))
+            .and_then(|b| if spinning() { Ok(b) } else { b.with_intra_op_spinning(false).map_err(Into::into) })
             .and_then(|b| match profile {
                 Some(p) => b.with_profiling(p).map_err(Into::into),
                 None => Ok(b),
@@ -56,6 +64,7 @@ impl OrtRuntime {
         let built = Session::builder(env)
             .and_then(|b| b.with_optimization_level(GraphOptimizationLevel::Level3).map_err(Into::into))
             .and_then(|b| b.with_intra_threads(1).map_err(Into::into))
+            .and_then(|b| if spinning() { Ok(b) } else { b.with_intra_op_spinning(false).map_err(Into::into) })
             .and_then(|b| b.with_optimized_model_path(&path).map_err(Into::into))
             .and_then(|mut b| b.commit_from_memory(&bytes))
             .map_err(|e| anyhow!("ONNX Runtime rejected the model: {e}"));

@@ -85,9 +85,10 @@ impl Schedule {
         Ok(())
     }
 
-    /// The thread count to train with: 0 is every core of this machine, resolved once so
-    /// that the manifest records the count the weights were trained with.
+    /// The thread count to train with: 0 is every core of this machine (its share of them when
+    /// workers run side by side: [`crate::pyenv::worker_share`]), resolved once so that the
+    /// manifest records the count the weights were trained with.
     pub fn threads(&self) -> usize {
-        if self.threads > 0 { self.threads } else { std::thread::available_parallelism().map_or(1, |n| n.get()) }
+        if self.threads > 0 { self.threads } else { crate::pyenv::worker_share() }
     }
 }

@@ -239,10 +239,12 @@ fn a_pruned_compile_is_byte_identical_when_repeated_under_load() {
     let manifest = std::fs::read_to_string(a.join("manifest.yaml")).unwrap();
     assert!(manifest.contains("reproducible: true") && manifest.contains("steps: 30"), "{manifest}");
 
-    // One busy loop on the 2-core machines this runs on: the training's two threads share the
-    // cores with it (two loops also starved the test running beside this one). It spins only
-    // while this test holds the workers' turn, which the rebuild then runs in without taking it
-    // again: queued behind another test's training, it would slow that training instead.
+    // One busy loop on the 2-core machines this runs on: the training shares the cores with it
+    // (two loops also starved the test running beside this one). It spins only while this test
+    // holds a workers' turn, which the rebuild then runs in without taking it again: queued
+    // behind another test's training, it would slow that training instead. Without the lock's
+    // variables the rebuild's share of the cores is all of them: under `scripts/test`, which
+    // gives each turn one core, the bytes hold only if it trains on the count recorded.
     let turn = pdi_compile::pyenv::exclusive().unwrap();
     let load: Vec<std::process::Child> = (0..1).map(|_| std::process::Command::new("sh").args(["-c", "while :; do :; done"]).spawn().unwrap()).collect();
     // The manifest alone rebuilds it.
