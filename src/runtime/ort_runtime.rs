@@ -4,7 +4,7 @@ use super::{NamedTensors, Runtime};
 use crate::onnx::proto::ModelProto;
 use crate::tensor::{Tensor, TensorData};
 use anyhow::{anyhow, bail, Context, Result};
-use ort::session::{builder::GraphOptimizationLevel, Session};
+use ort::session::{builder::GraphOptimizationLevel, builder::SessionBuilder, Session};
 use ort::value::{DynValue, Tensor as OrtTensor, TensorElementType, ValueType};
 use prost::Message;
 
@@ -17,6 +17,17 @@ pub struct OrtRuntime {
 /// cores (the test suite's tests side by side), a spinning pool takes them from the others.
 fn spinning() -> bool {
     std::env::var_os("PDI_ORT_SPIN").is_none_or(|v| v != "0")
+}
+
+/// A session builder at `level` on `threads` intra-op threads, spinning as [`spinning`] says:
+/// what every session here starts from.
+fn builder(level: GraphOptimizationLevel, threads: usize) -> Result<SessionBuilder> {
+    let env = super::ort_lib::environment()?;
+    Session::builder(env)
+        .and_then(|b| b.with_optimization_level(level).map_err(Into::into))
+        .and_then(|b| b.with_intra_threads(threads).map_err(Into::into))
+        .and_then(|b| if spinning() { Ok(b) } else { b.with_intra_op_spinning(false).map_err(Into::into) })
+        .map_err(|e| anyhow!("ONNX Runtime rejected the model: {e}"))
 }
 
 impl OrtRuntime {
@@ -34,18 +45,12 @@ impl OrtRuntime {
     }
 
     fn build(model: &ModelProto, level: GraphOptimizationLevel, threads: usize, profile: Option<&std::path::Path>) -> Result<OrtRuntime> {
-        let env = super::ort_lib::environment()?;
-        let bytes = model.encode_to_vec();
-        let session = Session::builder(env)
-            .and_then(|b| b.with_optimization_level(level).map_err(Into::into))
-            .and_then(|b| b.with_intra_threads(threads).map_err(Into::into))
-            .and_then(|b| if spinning() { Ok(b) } else { b.with_intra_op_spinning(false).map_err(Into::into) })
-            .and_then(|b| match profile {
-                Some(p) => b.with_profiling(p).map_err(Into::into),
-                None => Ok(b),
-            })
-            .and_then(|mut b| b.commit_from_memory(&bytes))
-            .map_err(|e| anyhow!("ONNX Runtime rejected the model: {e}"))?;
+        let rejected = |e: ort::Error| anyhow!("ONNX Runtime rejected the model: {e}");
+        let mut b = builder(level, threads)?;
+        if let Some(p) = profile {
+            b = b.with_profiling(p).map_err(|e| rejected(e.into()))?;
+        }
+        let session = b.commit_from_memory(&model.encode_to_vec()).map_err(rejected)?;
         Ok(OrtRuntime { session })
     }
 
@@ -59,13 +64,10 @@ impl OrtRuntime {
     pub fn optimized_ops(model: &ModelProto) -> Result<std::collections::BTreeMap<String, usize>> {
         static SEQ: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
         let path = std::env::temp_dir().join(format!("pdi-compile-optimized-{}-{}.onnx", std::process::id(), SEQ.fetch_add(1, std::sync::atomic::Ordering::Relaxed)));
-        let env = super::ort_lib::environment()?;
         let bytes = model.encode_to_vec();
-        let built = Session::builder(env)
-            .and_then(|b| b.with_optimization_level(GraphOptimizationLevel::Level3).map_err(Into::into))
-            .and_then(|b| b.with_intra_threads(1).map_err(Into::into))
-            .and_then(|b| if spinning() { Ok(b) } else { b.with_intra_op_spinning(false).map_err(Into::into) })
-            .and_then(|b| b.with_optimized_model_path(&path).map_err(Into::into))
+        let built = builder(GraphOptimizationLevel::Level3, 1)?
+            .with_optimized_model_path(&path)
+            .map_err(Into::into)
             .and_then(|mut b| b.commit_from_memory(&bytes))
             .map_err(|e| anyhow!("ONNX Runtime rejected the model: {e}"));
         let counted = built.and_then(|_| {
