@@ -203,7 +203,12 @@ fn turn(path: &Path, slots: usize) -> Result<std::fs::File> {
         }
         return Ok(file);
     }
-    let mut files = (0..slots).map(|k| if k == 0 { open(path) } else { open(&PathBuf::from(format!("{}.{k}", path.display()))) }).collect::<Result<Vec<_>>>()?;
+    let slot = |k: usize| {
+        let mut name = path.as_os_str().to_owned();
+        name.push(format!(".{k}"));
+        PathBuf::from(name)
+    };
+    let mut files = (0..slots).map(|k| if k == 0 { open(path) } else { open(&slot(k)) }).collect::<Result<Vec<_>>>()?;
     loop {
         for k in 0..slots {
             if lock(&files[k], libc::LOCK_EX | libc::LOCK_NB) {
