@@ -8,6 +8,7 @@ A page holds a record's block between `<!-- record NAME -->` and `<!-- /record N
 import hashlib
 import json
 import re
+import statistics
 import sys
 from collections import Counter
 from pathlib import Path
@@ -337,6 +338,24 @@ def ship_640(f):
         variants(f["variants"]) + ["", f"Recommended: {recommended(f)}."]
 
 
+def goal_loops(f, goals):
+    """The goal lines read off a latency record's short loops of the goal's models alone:
+    `goals` holds (variant, shown as, bound); the verdict is the median's, the range shows the
+    drift between loops run back to back."""
+    g = f.get("goals")
+    if not g:
+        return []
+    parts = []
+    for v, shown, bound in goals:
+        xs = sorted(loop[v] for loop in g["loops"])
+        med = statistics.median(xs)
+        parts.append(f"`{shown}` {med:.3f}× ({xs[0]:.3f}–{xs[-1]:.3f}; goal ≤ {bound}: "
+                     f"{'met' if med <= float(bound.split()[0]) else 'not met'})")
+    return ["", f"The goals' models alone, in {len(g['loops'])} short interleaved loops run back to back after it "
+                f"(ONNX Runtime, {g['threads']} threads, {g['runs']} runs each), against `detect-f32`: the median of the "
+                f"loops (their range): " + "; ".join(parts) + "."]
+
+
 def latency(f):
     by = {(r["variant"], r["engine"]): r for r in f["rows"]}
     rows = []
@@ -392,6 +411,10 @@ def latency(f):
                       for o in g["by_tract_op"]])
         out += ["", "The layers it loses most on: " + "; ".join(
             f"`{l['node']}` {l['tract_ms']:.2f} ms ({l['tract_op']}) against {l['ort_ms']:.2f}" for l in g["layers"]) + "."]
+    mac = by[("pruned-f32", "ort")]["macs_ratio"]
+    out += goal_loops(f, [("int8", "detect-int8", "0.8"), ("pruned-int8", "detect-pruned-int8", "0.5"),
+                          ("pruned-f32", "detect-pruned-f32", f"{1.5 * mac:.3f} (1.5× its MAC ratio of {mac:.3f})"),
+                          ("pruned-f32", "detect-pruned-f32", "0.42 (1.5× a MAC ratio of 0.28)")])
     slow = [(l["node"], l["ms"], l.get("gmacs_per_s")) for l in by[("pruned-int8", "ort")]["layers"][:3]]
     out += ["", "The slowest layers of `pruned-int8` on ONNX Runtime: " + "; ".join(
         f"`{n}` {ms:.2f} ms" + (f" ({g:.1f} GMAC/s)" if g else "") for n, ms, g in slow) + "."]
@@ -412,7 +435,7 @@ def latency_256(f):
              + (f", and with its last convolutions' inputs quantized (the recipe before) at {by[('int8-head', 'ort')]['ratio']:.3f}×"
                 if ("int8-head", "ort") in by else "")
              + (f"; with each SiLU float between the integer convolutions at {by[('int8-silu', 'ort')]['ratio']:.3f}×"
-                if ("int8-silu", "ort") in by else "") + "."]
+                if ("int8-silu", "ort") in by else "") + "."] + goal_loops(f, [("int8", "detect-int8", "1 (no slower)")])
 
 
 def latency_640_full(f):
@@ -427,7 +450,8 @@ def latency_640_full(f):
         ["", f"On ONNX Runtime, against `detect-f32`: `detect-int8` {o('int8'):.3f}× (goal ≤ 0.45), `detect-pruned-f32` "
              f"{o('pruned-f32'):.3f}× at {by[('pruned-f32', 'ort')]['macs_ratio']:.3f}× the MACs, `detect-pruned-int8` "
              f"{o('pruned-int8'):.3f}×. tract against ONNX Runtime: `f32` {t('f32'):.2f}×, `pruned-f32` {t('pruned-f32'):.2f}×. "
-             f"The 3-D form against the 2-D one on ONNX Runtime (rel L2 on 4 synthetic frames): {noise}."]
+             f"The 3-D form against the 2-D one on ONNX Runtime (rel L2 on 4 synthetic frames): {noise}."] + \
+        goal_loops(f, [("int8", "detect-int8", "0.45")])
 
 
 def tract_kernels(f):
@@ -449,15 +473,20 @@ BLOCKS = {"lossless": lossless, "latency-640": latency, "latency-640-full": late
 
 def ort_ratios(figures):
     """Each variant's latency against `detect-f32` on ONNX Runtime, from a latency record."""
-    return {r["variant"]: round(r["ratio"], 3) for r in figures.get("rows", []) if r.get("engine") == "ort"}
+    out = {r["variant"]: round(r["ratio"], 3) for r in figures.get("rows", []) if r.get("engine") == "ort"}
+    loops = figures.get("goals", {}).get("loops", [])
+    for v in (loops[0] if loops else {}):
+        out[f"goal:{v}"] = round(statistics.median(loop[v] for loop in loops), 3)
+    return out
 
 
 # The ratios a latency record's history table shows, in this order, where a loop measured them.
 HISTORY_COLUMNS = {
     "latency-640": ["int8", "int8-no-s2d", "int8-head", "pruned-f32", "pruned-int8", "pruned-int8-no-s2d",
-                    "pruned-f32-round16", "pruned-f32-round8", "pruned-f32-latency"],
-    "latency-256": ["int8", "int8-no-s2d", "int8-2d", "int8-head", "int8-silu"],
-    "latency-640-full": ["int8", "pruned-f32", "pruned-int8"],
+                    "pruned-f32-round16", "pruned-f32-round8", "pruned-f32-latency",
+                    "goal:int8", "goal:pruned-f32", "goal:pruned-int8"],
+    "latency-256": ["int8", "int8-no-s2d", "int8-2d", "int8-head", "int8-silu", "goal:int8"],
+    "latency-640-full": ["int8", "pruned-f32", "pruned-int8", "goal:int8"],
 }
 
 
@@ -468,7 +497,7 @@ def history(r):
     cols = [c for c in HISTORY_COLUMNS[r["name"]] if any(c in h["figures"] for h in runs)]
     return [f"Every run of this record, against `detect-f32` on ONNX Runtime (the recipes as they were at each "
             f"commit; the CPU's drift moves a ratio by up to a third from run to run):", ""] + \
-        table(["date", "commit", "CPU"] + [f"`{c}`" for c in cols],
+        table(["date", "commit", "CPU"] + [f"`{c[5:]}` (goal loops)" if c.startswith("goal:") else f"`{c}`" for c in cols],
               [[h["date"], h["commit"][:7], cpu(h["machine"])]
                + [f"{h['figures'][c]:.3f}×" if c in h["figures"] else "-" for c in cols] for h in runs])
 
