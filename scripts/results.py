@@ -968,6 +968,8 @@ def latency_640(ctx):
     # narrow-convs-nchw measured both ways: taken out of the recipes that end with it, put on
     # detect-f32.
     two_d, three_d = layout_recipes(tried_prune)
+    bias = tried_prune / "bias.yaml"
+    bias.write_text("name: bias\npasses: [{narrow-convs-nchw: {form: bias}}]\n")
     # (variant, what it is, compiled from, recipe, compile's further arguments)
     plan = [
         ("f32", "detect-f32", None, "passes/detect-f32.yaml", ()),
@@ -984,6 +986,9 @@ def latency_640(ctx):
         ("pruned-int8-2d", "detect-pruned-int8 without narrow-convs-nchw", "pruned-int8", two_d, ()),
         ("int8-2d", "detect-int8 without narrow-convs-nchw", "int8", two_d, ()),
         ("f32-3d", "detect-f32 with narrow-convs-nchw", "f32", three_d, ()),
+        # The other form of narrow-convs-nchw: 2-D, the bias through a DequantizeLinear.
+        ("pruned-f32-bias", "detect-pruned-f32 with narrow-convs-nchw's form: bias", "pruned-f32-2d", bias, ()),
+        ("pruned-int8-bias", "detect-pruned-int8 with narrow-convs-nchw's form: bias", "pruned-int8-2d", bias, ()),
         # space-to-depth measured both ways: taken out of the INT8 recipes, put on the float ones.
         ("int8-no-s2d", "detect-int8 without space-to-depth (the recipe before)", "f32", without_s2d(ctx, "detect-int8"), ()),
         ("pruned-int8-no-s2d", "detect-pruned-int8 without space-to-depth (the recipe before)", "pruned-f32", without_s2d(ctx, "detect-pruned-int8"), ()),
@@ -1022,7 +1027,7 @@ def latency_640(ctx):
                 n: {"depthwise_split": t.get("depthwise_split", []), "conv_tiles": t.get("conv_tiles", []),
                     "fastest_threads": t["fastest_threads"], "load": t["load"]} for n, t in tiles.items()},
             "threads": c["threads"], "rows": rows, "gaps": gaps,
-            "goals": goal_loops(ctx, ["f32", "int8", "pruned-f32", "pruned-int8"], 30)}
+            "goals": goal_loops(ctx, ["f32", "int8", "pruned-f32", "pruned-int8", "pruned-f32-bias", "pruned-int8-bias"], 30)}
 
 
 def latency_640_full(ctx):

@@ -379,6 +379,15 @@ def latency(f):
         pairs = [("pruned-f32", "pruned-f32-2d"), ("pruned-int8", "pruned-int8-2d"), ("int8", "int8-2d"), ("f32-3d", "f32")]
         out[-1] += (" `narrow-convs-nchw` on ONNX Runtime, each model against its 2-D form: " + ", ".join(
             f"`{a}` {by[(a, 'ort')]['median_ms'] / by[(b, 'ort')]['median_ms']:.3f}× of `{b}`" for a, b in pairs) + ".")
+    if ("pruned-f32-bias", "ort") in by:
+        # narrow-convs-nchw's two forms, each pruned model against itself in 3-D, in the long
+        # loop and as the median of the goal loops.
+        loops = f.get("goals", {}).get("loops", [])
+        med = lambda v: statistics.median(loop[v] for loop in loops)
+        out[-1] += (" `narrow-convs-nchw` with `form: bias` on ONNX Runtime, each pruned model against its 3-D form: " + ", ".join(
+            f"`{v}-bias` {by[(v + '-bias', 'ort')]['median_ms'] / by[(v, 'ort')]['median_ms']:.3f}×"
+            + (f" ({med(v + '-bias') / med(v):.3f}× in the goal loops' medians)" if loops and v + "-bias" in loops[0] else "")
+            for v in ("pruned-f32", "pruned-int8")) + ".")
     if ("int8-no-s2d", "ort") in by:
         # space-to-depth's gain, within the same loop.
         pairs = [("int8", "int8-no-s2d"), ("pruned-int8", "pruned-int8-no-s2d"), ("f32-s2d", "f32"), ("pruned-f32-s2d", "pruned-f32")]

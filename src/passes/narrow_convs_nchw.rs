@@ -1,6 +1,10 @@
 //! `narrow-convs-nchw`: each group-1 convolution with fewer than `below` input and output
 //! channels becomes a 3-D convolution over a unit axis (Unsqueeze, Conv, Squeeze), which
-//! ONNX Runtime runs in NCHW.
+//! ONNX Runtime runs in NCHW; with `form: bias`, it stays 2-D and reads its bias through a
+//! DequantizeLinear (`ir::rewrite::bias_pin`), which keeps it on ONNX Runtime's 2-D NCHW
+//! kernels: the 2-D im2col, not the 3-D form's generic one. The 3-D form stays the default:
+//! it does not lean on which nodes ONNX Runtime folds, and record `latency-640` times the
+//! two forms against each other on the pruned models (docs/results/latency.md).
 //!
 //! Why: on x86, ONNX Runtime's NCHWc layout transform takes every float 2-D convolution with
 //! fewer input channels than its block (16 with AVX-512, 8 with AVX2) to its blocked kernel,
@@ -20,9 +24,11 @@
 //! pair, where ONNX Runtime fuses it. Every later pass gets 2-D convolutions back (the runner
 //! lowers them first, under their own names), and so do tract and its target: a recipe
 //! ends with this pass, and one built on such a recipe ends with it again.
-//! Needs: f32 weights in an initializer, a 2-D kernel. Reports: each convolution rewritten
-//! (channels in and out, the activation moved with it).
+//! Needs: f32 weights in an initializer, a 2-D kernel; `form: bias` an opset of 13 or later
+//! (a per-channel DequantizeLinear; before it, the 3-D form). Reports: each convolution
+//! rewritten (channels in and out, its form, the activation moved with it).
 
+use crate::ir::rewrite::bias_pin::pin;
 use crate::ir::rewrite::conv_3d::{lift, narrow};
 use crate::onnx::proto::ModelProto;
 use super::{Pass, PassContext};
@@ -35,11 +41,24 @@ pub struct Options {
     /// A convolution is rewritten when both its input and its output channels are fewer
     /// than this: ONNX Runtime's NCHWc block on AVX-512 (on AVX2 it is 8).
     pub below: usize,
+    /// How each is kept off the blocked kernels: `3d` (a 3-D convolution over a unit axis)
+    /// or `bias` (2-D, its bias read through a DequantizeLinear).
+    #[serde(default)]
+    pub form: Form,
+}
+
+#[derive(serde::Serialize, Deserialize, Clone, Copy, PartialEq, Eq, Default, Debug)]
+pub enum Form {
+    #[default]
+    #[serde(rename = "3d")]
+    ThreeD,
+    #[serde(rename = "bias")]
+    Bias,
 }
 
 impl Default for Options {
     fn default() -> Self {
-        Options { below: 16 }
+        Options { below: 16, form: Form::ThreeD }
     }
 }
 
@@ -72,10 +91,14 @@ impl Pass for NarrowConvsNchw {
         let g = super::graph_mut(model)?;
         let mut rewritten = Vec::new();
         // Last first: a rewrite inserts nodes, which moves the indices after it.
+        let bias = self.options.form == Form::Bias && opset >= 13;
         for (i, cin, cout) in narrow(g, self.options.below).into_iter().rev() {
             let node = g.node[i].name.clone();
-            let activation = lift(g, i, opset)?;
-            rewritten.push(serde_json::json!({ "node": node, "channels": [cin, cout], "activation": activation }));
+            let (form, activation) = match bias {
+                true => ("bias", pin(g, i).map(|_| None)?),
+                false => ("3d", lift(g, i, opset)?),
+            };
+            rewritten.push(serde_json::json!({ "node": node, "channels": [cin, cout], "form": form, "activation": activation }));
         }
         rewritten.reverse();
         Ok(serde_json::json!({ "rewritten": rewritten }))

@@ -50,7 +50,7 @@ fn executor(threads: usize) -> Executor {
 /// `model` as tract is given it ([`make_tract_ready`]), borrowed when nothing changes.
 pub fn tract_ready(model: &ModelProto) -> Result<std::borrow::Cow<'_, ModelProto>> {
     let graph = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
-    if !crate::ir::rewrite::split_depthwise::any_to_split(graph) && !crate::ir::rewrite::conv_3d::any_lifted(graph) && !crate::ir::rewrite::space_to_depth::any_rewritten(graph) {
+    if !crate::ir::rewrite::split_depthwise::any_to_split(graph) && !crate::ir::rewrite::conv_3d::any_lifted(graph) && !crate::ir::rewrite::bias_pin::any_pinned(graph) && !crate::ir::rewrite::space_to_depth::any_rewritten(graph) {
         return Ok(std::borrow::Cow::Borrowed(model));
     }
     let mut ready = model.clone();
@@ -60,13 +60,15 @@ pub fn tract_ready(model: &ModelProto) -> Result<std::borrow::Cow<'_, ModelProto
 
 /// Rewrites `g` into the form tract is given: `narrow-convs-nchw`'s 3-D convolutions back in
 /// 2-D (the same sums), which tract ran slower (1.15x on the pruned width-0.25 v5 at
-/// 640x480), `space-to-depth`'s float blocks back at full resolution (tract's convolutions
+/// 640x480), and its pinned biases constant again (a layout hint for ONNX Runtime alone),
+/// `space-to-depth`'s float blocks back at full resolution (tract's convolutions
 /// follow their multiplications: 2.1x slower on blocks), and depthwise convolutions wider
 /// than tract's SIMD kernel takes split into bands (`split-wide-depthwise`; the same sums in
 /// another order), since past 128 taps tract runs them as scalar loops. Returns the depthwise
 /// convolutions split and those left.
 pub fn make_tract_ready(g: &mut GraphProto) -> Result<(Vec<serde_json::Value>, Vec<serde_json::Value>)> {
     crate::ir::rewrite::conv_3d::lower_all(g)?;
+    crate::ir::rewrite::bias_pin::unpin_all(g)?;
     crate::ir::rewrite::space_to_depth::lower_all(g)?;
     crate::ir::rewrite::split_depthwise::split_all(g)
 }

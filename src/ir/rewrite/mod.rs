@@ -1,6 +1,7 @@
 //! Graph rewrites that several layers need. The passes wrap them for recipes; the runtimes,
 //! targets and analyses below the passes call them directly.
 
+pub mod bias_pin;
 pub mod conv_3d;
 pub mod dce;
 pub mod space_to_depth;

@@ -1,6 +1,7 @@
 //! `narrow-convs-nchw`: group-1 convolutions narrower than ONNX Runtime's NCHWc block become
-//! 3-D convolutions over a unit axis, computing the same sums; every later pass and tract
-//! get them back in 2-D, byte for byte.
+//! 3-D convolutions over a unit axis, or (`form: bias`) read their bias through a
+//! DequantizeLinear, computing the same sums; every later pass and tract get them back as
+//! they were, byte for byte.
 
 use super::*;
 use pdi_compile::onnx::attr::{make_int, make_ints};
@@ -41,8 +42,8 @@ fn narrow_convolutions_become_3d_and_compute_the_same() {
     let reports = run_passes(&mut m, "narrow-convs-nchw");
     let d = &reports[0].details;
     assert_eq!(d["rewritten"], serde_json::json!([
-        { "node": "a", "channels": [4, 2], "activation": "Relu" },
-        { "node": "b", "channels": [2, 8], "activation": null },
+        { "node": "a", "channels": [4, 2], "form": "3d", "activation": "Relu" },
+        { "node": "b", "channels": [2, 8], "form": "3d", "activation": null },
     ]));
     let g = m.graph.as_ref().unwrap();
     let ops: Vec<&str> = g.node.iter().map(|n| n.op_type.as_str()).collect();
@@ -67,6 +68,51 @@ fn narrow_convolutions_become_3d_and_compute_the_same() {
 }
 
 #[test]
+fn with_form_bias_narrow_convolutions_stay_2d_off_the_blocked_kernels() {
+    let original = narrow_chain();
+    let mut m = original.clone();
+    let inputs = vec![input("x", vec![1, 4, 24, 32], 5)];
+    let before = outputs(Engine::Ort, &m, &inputs);
+    let reports = run_passes(&mut m, "{narrow-convs-nchw: {form: bias}}");
+    assert_eq!(reports[0].details["rewritten"], serde_json::json!([
+        { "node": "a", "channels": [4, 2], "form": "bias", "activation": null },
+        { "node": "b", "channels": [2, 8], "form": "bias", "activation": null },
+    ]));
+    let g = m.graph.as_ref().unwrap();
+    let ops: Vec<&str> = g.node.iter().map(|n| n.op_type.as_str()).collect();
+    assert_eq!(ops, ["DequantizeLinear", "Conv", "Relu", "DequantizeLinear", "Conv", "Conv", "Conv"]);
+    // The bias through codes of 1 and the bias itself as the scale; a zero bias where there
+    // was none.
+    let init = |name: &str| pdi_compile::onnx::tensor_proto::to_tensor(g.initializer.iter().find(|t| t.name == name).unwrap()).unwrap();
+    assert_eq!(g.node[0].input[1], "ba");
+    assert_eq!(init(&g.node[0].input[0]).data, pdi_compile::tensor::TensorData::I32(vec![1, 1]));
+    assert_eq!(g.node[1].input[2], g.node[0].output[0]);
+    assert_eq!(init(&g.node[3].input[1]).data, pdi_compile::tensor::TensorData::F32(vec![0.0; 8]));
+    assert_float_noise_on_ort_and_tract(&before, &m, &inputs);
+    // On ONNX Runtime, the same sums as the 3-D form, bit for bit: the same im2col order and
+    // matrix product, and the bias a product by 1.
+    let mut three_d = original.clone();
+    run_passes(&mut three_d, "narrow-convs-nchw");
+    for ((name, a), (_, b)) in outputs(Engine::Ort, &three_d, &inputs).iter().zip(outputs(Engine::Ort, &m, &inputs)) {
+        assert_eq!(a, &b, "{name}");
+    }
+
+    // What it is for: ONNX Runtime's NCHWc transform no longer takes them (x86 only).
+    if cfg!(target_arch = "x86_64") {
+        let reorders = |m: &ModelProto| OrtRuntime::optimized_ops(m).unwrap().get("ReorderOutput").copied().unwrap_or(0);
+        let (was, now) = (reorders(&original), reorders(&m));
+        assert!(now < was, "ReorderOutput nodes: {was} before, {now} after");
+    }
+    assert_later_passes_get_the_original(&original, &m, "narrow-convs-nchw");
+
+    // Before opset 13 DequantizeLinear has no per-channel scale: the 3-D form instead.
+    let mut old = narrow_chain();
+    old.opset_import[0].version = 12;
+    let reports = run_passes(&mut old, "{narrow-convs-nchw: {form: bias}}");
+    assert_eq!(reports[0].details["rewritten"][0]["form"], "3d");
+}
+
+#[test]
 fn wide_or_grouped_convolutions_and_bad_options_are_left_alone() {
     let mut m = narrow_chain();
     let reports = run_passes(&mut m, "{narrow-convs-nchw: {below: 2}}");
@@ -74,4 +120,6 @@ fn wide_or_grouped_convolutions_and_bad_options_are_left_alone() {
     assert_eq!(m, narrow_chain());
     let e = Recipe::parse("name: t\npasses: [{narrow-convs-nchw: {below: 1}}]\n").and_then(|r| pipeline::run(&r, &mut m, &mut PassContext::default())).err().expect("below: 1 is refused");
     assert!(format!("{e:#}").contains("below must be 2 to 4096 channels"), "{e:#}");
+    let e = Recipe::parse("name: t\npasses: [{narrow-convs-nchw: {form: 2d}}]\n").and_then(|r| pipeline::run(&r, &mut m, &mut PassContext::default())).err().expect("form: 2d is refused");
+    assert!(format!("{e:#}").contains("expected `3d` or `bias`"), "{e:#}");
 }
