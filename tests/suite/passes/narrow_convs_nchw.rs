@@ -33,6 +33,17 @@ fn narrow_chain() -> ModelProto {
     )
 }
 
+/// What the pass is for: ONNX Runtime's NCHWc transform no longer takes the rewritten
+/// convolutions, so fewer reorders back to NCHW (x86 only: elsewhere ONNX Runtime has no
+/// NCHWc layout).
+fn assert_off_the_blocked_kernels(original: &ModelProto, m: &ModelProto) {
+    if cfg!(target_arch = "x86_64") {
+        let reorders = |m: &ModelProto| OrtRuntime::optimized_ops(m).unwrap().get("ReorderOutput").copied().unwrap_or(0);
+        let (was, now) = (reorders(original), reorders(m));
+        assert!(now < was, "ReorderOutput nodes: {was} before, {now} after");
+    }
+}
+
 #[test]
 fn narrow_convolutions_become_3d_and_compute_the_same() {
     let original = narrow_chain();
@@ -54,13 +65,7 @@ fn narrow_convolutions_become_3d_and_compute_the_same() {
     assert_eq!(pdi_compile::onnx::attr::ints(&g.node[5], "strides").unwrap(), [1, 2, 2]);
     assert_float_noise_on_ort_and_tract(&before, &m, &inputs);
 
-    // What it is for: ONNX Runtime's NCHWc transform no longer takes them, so fewer reorders
-    // back to NCHW (x86 only: elsewhere ONNX Runtime has no NCHWc layout).
-    if cfg!(target_arch = "x86_64") {
-        let reorders = |m: &ModelProto| OrtRuntime::optimized_ops(m).unwrap().get("ReorderOutput").copied().unwrap_or(0);
-        let (was, now) = (reorders(&original), reorders(&m));
-        assert!(now < was, "ReorderOutput nodes: {was} before, {now} after");
-    }
+    assert_off_the_blocked_kernels(&original, &m);
 
     // Any later pass gets the 2-D convolutions back under their own names: the same bytes as
     // that pass on the original.
@@ -97,12 +102,7 @@ fn with_form_bias_narrow_convolutions_stay_2d_off_the_blocked_kernels() {
         assert_eq!(a, &b, "{name}");
     }
 
-    // What it is for: ONNX Runtime's NCHWc transform no longer takes them (x86 only).
-    if cfg!(target_arch = "x86_64") {
-        let reorders = |m: &ModelProto| OrtRuntime::optimized_ops(m).unwrap().get("ReorderOutput").copied().unwrap_or(0);
-        let (was, now) = (reorders(&original), reorders(&m));
-        assert!(now < was, "ReorderOutput nodes: {was} before, {now} after");
-    }
+    assert_off_the_blocked_kernels(&original, &m);
     assert_later_passes_get_the_original(&original, &m, "narrow-convs-nchw");
 
     // Before opset 13 DequantizeLinear has no per-channel scale: the 3-D form instead.
