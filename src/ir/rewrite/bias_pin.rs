@@ -37,7 +37,7 @@ pub fn pin(g: &mut GraphProto, i: usize) -> Result<()> {
         None => (add_constant(g, &format!("{name}_bias"), &Tensor::new(vec![cout], TensorData::F32(vec![0.0; cout]))), ADDED),
     };
     let codes = add_constant(g, &format!("{name}_bias_codes"), &Tensor::new(vec![cout], TensorData::I32(vec![1; cout])));
-    let out = fresh_name(g, &format!("{name}_bias"));
+    let out = fresh_name(g, &format!("{name}_pinned_bias"));
     let dq = NodeProto {
         name: format!("{name}{tag}"),
         op_type: "DequantizeLinear".into(),
