@@ -97,7 +97,7 @@ pub fn run_passes(passes: Vec<Box<dyn Pass>>, model: &mut ModelProto, cx: &mut P
         // blocks, go back for every pass but those that take them.
         let lowered = match model.graph.as_mut() {
             Some(g) => {
-                let convs = if pass.takes_lifted_convs() { 0 } else { crate::ir::rewrite::conv_3d::lower_all(g)? + crate::ir::rewrite::bias_pin::unpin_all(g)? };
+                let convs = if pass.takes_lifted_convs() { 0 } else { crate::ir::rewrite::lower_narrow_forms(g)? };
                 convs + if pass.takes_space_to_depth() { 0 } else { crate::ir::rewrite::space_to_depth::lower_all(g)? }
             }
             None => 0,

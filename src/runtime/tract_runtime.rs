@@ -50,7 +50,7 @@ fn executor(threads: usize) -> Executor {
 /// `model` as tract is given it ([`make_tract_ready`]), borrowed when nothing changes.
 pub fn tract_ready(model: &ModelProto) -> Result<std::borrow::Cow<'_, ModelProto>> {
     let graph = model.graph.as_ref().ok_or_else(|| anyhow!("model has no graph"))?;
-    if !crate::ir::rewrite::split_depthwise::any_to_split(graph) && !crate::ir::rewrite::conv_3d::any_lifted(graph) && !crate::ir::rewrite::bias_pin::any_pinned(graph) && !crate::ir::rewrite::space_to_depth::any_rewritten(graph) {
+    if !crate::ir::rewrite::split_depthwise::any_to_split(graph) && !crate::ir::rewrite::any_narrow_form(graph) && !crate::ir::rewrite::space_to_depth::any_rewritten(graph) {
         return Ok(std::borrow::Cow::Borrowed(model));
     }
     let mut ready = model.clone();
@@ -67,8 +67,7 @@ pub fn tract_ready(model: &ModelProto) -> Result<std::borrow::Cow<'_, ModelProto
 /// another order), since past 128 taps tract runs them as scalar loops. Returns the depthwise
 /// convolutions split and those left.
 pub fn make_tract_ready(g: &mut GraphProto) -> Result<(Vec<serde_json::Value>, Vec<serde_json::Value>)> {
-    crate::ir::rewrite::conv_3d::lower_all(g)?;
-    crate::ir::rewrite::bias_pin::unpin_all(g)?;
+    crate::ir::rewrite::lower_narrow_forms(g)?;
     crate::ir::rewrite::space_to_depth::lower_all(g)?;
     crate::ir::rewrite::split_depthwise::split_all(g)
 }
