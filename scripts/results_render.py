@@ -338,6 +338,11 @@ def ship_640(f):
         variants(f["variants"]) + ["", f"Recommended: {recommended(f)}."]
 
 
+def goal_median(figures, v):
+    """Variant `v`'s median ratio over a latency record's goal loops."""
+    return statistics.median(loop[v] for loop in figures["goals"]["loops"])
+
+
 def goal_loops(f, goals):
     """The goal lines read off a latency record's short loops of the goal's models alone:
     `goals` holds (variant, shown as, [(bound, why)]); the verdict is the median's, the range
@@ -348,7 +353,7 @@ def goal_loops(f, goals):
     parts = []
     for v, shown, bounds in goals:
         xs = sorted(loop[v] for loop in g["loops"])
-        med = statistics.median(xs)
+        med = goal_median(f, v)
         verdicts = "; ".join(f"goal ≤ {b}{why}: {'met' if med <= b else 'not met'}" for b, why in bounds)
         parts.append(f"`{shown}` {med:.3f}× ({xs[0]:.3f}–{xs[-1]:.3f}; {verdicts})")
     return ["", f"The goals' models alone, in {len(g['loops'])} short interleaved loops run back to back after it "
@@ -383,10 +388,9 @@ def latency(f):
         # narrow-convs-nchw's two forms, each pruned model against itself in 3-D, in the long
         # loop and as the median of the goal loops.
         loops = f.get("goals", {}).get("loops", [])
-        med = lambda v: statistics.median(loop[v] for loop in loops)
         out[-1] += (" `narrow-convs-nchw` with `form: bias` on ONNX Runtime, each pruned model against its 3-D form: " + ", ".join(
             f"`{v}-bias` {by[(v + '-bias', 'ort')]['median_ms'] / by[(v, 'ort')]['median_ms']:.3f}×"
-            + (f" ({med(v + '-bias') / med(v):.3f}× in the goal loops' medians)" if loops and v + "-bias" in loops[0] else "")
+            + (f" ({goal_median(f, v + '-bias') / goal_median(f, v):.3f}× in the goal loops' medians)" if loops and v + "-bias" in loops[0] else "")
             for v in ("pruned-f32", "pruned-int8")) + ".")
     if ("int8-no-s2d", "ort") in by:
         # space-to-depth's gain, within the same loop.
@@ -485,7 +489,7 @@ def ort_ratios(figures):
     out = {r["variant"]: round(r["ratio"], 3) for r in figures.get("rows", []) if r.get("engine") == "ort"}
     loops = figures.get("goals", {}).get("loops", [])
     for v in (loops[0] if loops else {}):
-        out[f"goal:{v}"] = round(statistics.median(loop[v] for loop in loops), 3)
+        out[f"goal:{v}"] = round(goal_median(figures, v), 3)
     return out
 
 

@@ -90,13 +90,15 @@ impl Pass for NarrowConvsNchw {
         let opset = crate::onnx::edit::default_opset(model).unwrap_or(13);
         let g = super::graph_mut(model)?;
         let mut rewritten = Vec::new();
-        // Last first: a rewrite inserts nodes, which moves the indices after it.
         let bias = self.options.form == Form::Bias && opset >= 13;
+        // Last first: a rewrite inserts nodes, which moves the indices after it.
         for (i, cin, cout) in narrow(g, self.options.below).into_iter().rev() {
             let node = g.node[i].name.clone();
-            let (form, activation) = match bias {
-                true => ("bias", pin(g, i).map(|_| None)?),
-                false => ("3d", lift(g, i, opset)?),
+            let (form, activation) = if bias {
+                pin(g, i)?;
+                ("bias", None)
+            } else {
+                ("3d", lift(g, i, opset)?)
             };
             rewritten.push(serde_json::json!({ "node": node, "channels": [cin, cout], "form": form, "activation": activation }));
         }

@@ -19,6 +19,11 @@ fn spinning() -> bool {
     std::env::var_os("PDI_ORT_SPIN").is_none_or(|v| v != "0")
 }
 
+/// ONNX Runtime's error while building a session, as every session here reports it.
+fn rejected(e: ort::Error) -> anyhow::Error {
+    anyhow!("ONNX Runtime rejected the model: {e}")
+}
+
 /// A session builder at `level` on `threads` intra-op threads, spinning as [`spinning`] says:
 /// what every session here starts from.
 fn builder(level: GraphOptimizationLevel, threads: usize) -> Result<SessionBuilder> {
@@ -27,7 +32,7 @@ fn builder(level: GraphOptimizationLevel, threads: usize) -> Result<SessionBuild
         .and_then(|b| b.with_optimization_level(level).map_err(Into::into))
         .and_then(|b| b.with_intra_threads(threads).map_err(Into::into))
         .and_then(|b| if spinning() { Ok(b) } else { b.with_intra_op_spinning(false).map_err(Into::into) })
-        .map_err(|e| anyhow!("ONNX Runtime rejected the model: {e}"))
+        .map_err(rejected)
 }
 
 impl OrtRuntime {
@@ -45,7 +50,6 @@ impl OrtRuntime {
     }
 
     fn build(model: &ModelProto, level: GraphOptimizationLevel, threads: usize, profile: Option<&std::path::Path>) -> Result<OrtRuntime> {
-        let rejected = |e: ort::Error| anyhow!("ONNX Runtime rejected the model: {e}");
         let mut b = builder(level, threads)?;
         if let Some(p) = profile {
             b = b.with_profiling(p).map_err(|e| rejected(e.into()))?;
@@ -69,7 +73,7 @@ impl OrtRuntime {
             .with_optimized_model_path(&path)
             .map_err(Into::into)
             .and_then(|mut b| b.commit_from_memory(&bytes))
-            .map_err(|e| anyhow!("ONNX Runtime rejected the model: {e}"));
+            .map_err(rejected);
         let counted = built.and_then(|_| {
             let m = crate::onnx::io::load(&path)?.model;
             let mut ops = std::collections::BTreeMap::new();
